@@ -1,0 +1,1 @@
+"""evcap.acquire: the DAVIS346 driver, the replay backend and the recorder."""

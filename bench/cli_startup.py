@@ -1,0 +1,26 @@
+"""How long `evcap --help` takes from the shell (median of several runs).
+
+.venv/bin/python bench/cli_startup.py
+"""
+
+from __future__ import annotations
+
+import statistics
+import subprocess
+import sys
+import time
+
+from _common import report
+
+
+def main() -> None:
+    times = []
+    for _ in range(10):
+        start = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "evcap", "--help"], check=True, capture_output=True)
+        times.append(time.perf_counter() - start)
+    report("cli_startup", {"help_median_s": statistics.median(times), "help_max_s": max(times)})
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""evcap.calib: intrinsics, per-pixel contrast thresholds, hot pixels and noise."""

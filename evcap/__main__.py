@@ -1,0 +1,5 @@
+import sys
+
+from evcap.cli import main
+
+sys.exit(main())

@@ -1,0 +1,734 @@
+"""The session file: one HDF5 file per recording, the format every step reads and writes.
+
+The layout is documented in docs/session-format.md. ``SessionWriter`` creates a session and
+appends to it while it is recorded (HDF5 SWMR mode, flushed periodically, so that a crash keeps
+everything up to the last flush); ``Session`` opens one, checks it and reads time slices
+without reading the whole file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime
+import os
+import shutil
+import time
+import zlib
+from collections import deque
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from evcap import __version__
+from evcap.errors import (
+    InputNotFoundError,
+    OutputExistsError,
+    SessionFormatError,
+    SessionWriteError,
+)
+from evcap.events import COLOR_FILTERS, Events, check_color_filter, first_unsorted
+from evcap.streams import APS_MAX, Frames, ImuSamples, TriggerKind, Triggers
+
+SCHEMA_VERSION = 1
+EVENT_CHUNK = 1 << 17
+"""Events per HDF5 chunk in /events/{x,y,t,p}."""
+DEFLATE_LEVEL = 1
+"""zlib level of the deflate filter: level 1 keeps up with the sensor's peak rate."""
+FLUSH_INTERVAL_S = 0.5
+"""How often the writer flushes by default; a crash loses at most this much data."""
+T_FILL = -1
+"""Fill value of /events/t: a timestamp no written event has, so unwritten chunks show."""
+
+EVENT_FIELDS = {"x": np.uint16, "y": np.uint16, "t": np.int64, "p": np.uint8}
+RESERVED_GROUPS = ("calibration", "poses", "gt")
+"""Groups that later steps add (calibration, poses, ground truth of simulated sessions)."""
+_SMALL_CHUNK = 4096
+_READ_BLOCK = 8 * EVENT_CHUNK
+_READ_CACHE = 16 << 20  # HDF5 chunk cache per dataset: a few event chunks of each field
+
+
+@dataclass(frozen=True)
+class SensorInfo:
+    """What the session's data comes from; stored as root attributes."""
+
+    sensor: str  # model: "DAVIS346", "Color-DAVIS346", "simulated", ...
+    width: int  # pixels
+    height: int  # pixels
+    color_filter: str = "MONO"  # "MONO", or the Bayer cell such as "RGBG" (see evcap.events)
+    serial: str = ""  # the camera's serial number, "" when unknown
+    t_offset_us: int = 0  # absolute time (Unix microseconds) of t = 0
+
+    def __post_init__(self) -> None:
+        check_color_filter(self.color_filter)
+        if not (0 < self.width <= 65536 and 0 < self.height <= 65536):
+            raise SessionFormatError(f"sensor size {self.width} x {self.height} is not valid")
+
+
+def _ms_entries(t_new: np.ndarray, n_before: int, ms_done: int) -> np.ndarray:
+    """The millisecond-index entries that events ``t_new`` (following ``n_before`` earlier ones,
+    all earlier than ms ``ms_done``) settle: the first event at or after each millisecond
+    ms_done .. t_new[-1] // 1000."""
+    if t_new.size == 0:
+        return np.zeros(0, np.int64)
+    ms = np.arange(ms_done, int(t_new[-1]) // 1000 + 1, dtype=np.int64)
+    return n_before + np.searchsorted(t_new, ms * 1000, "left").astype(np.int64)
+
+
+def _shuffled(a: np.ndarray) -> bytes:
+    """The bytes of ``a`` as HDF5's shuffle filter arranges them (byte planes)."""
+    return np.ascontiguousarray(a.view(np.uint8).reshape(-1, a.itemsize).T).tobytes()
+
+
+def _compress_chunk(a: np.ndarray) -> bytes:
+    """One full chunk through the shuffle and deflate filters (runs in worker threads: zlib
+    releases the GIL)."""
+    return zlib.compress(_shuffled(a) if a.itemsize > 1 else a.tobytes(), DEFLATE_LEVEL)
+
+
+def _now_iso() -> str:
+    return datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
+
+
+def _attr_value(value: object) -> object:
+    """A root attribute as HDF5 stores it: numbers, strings, or arrays of them."""
+    if isinstance(value, str | int | float | bool | np.integer | np.floating):
+        return value
+    return np.asarray(value)
+
+
+class SessionWriter:
+    """Create a session file and append streams to it in time order.
+
+    Event chunks are compressed by worker threads and written directly (HDF5's deflate and
+    shuffle filters, so that any HDF5 reader opens the file). The file is flushed every
+    ``flush_interval_s`` of ``clock`` time; ``close`` writes the final attributes. Use it as a
+    context manager. ``frame_bits`` is the number of significant bits of the frames' values
+    (10 from the camera; 8 for frames imported from 8-bit files, stored as value << 2).
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        sensor: SensorInfo,
+        *,
+        attrs: dict | None = None,
+        overwrite: bool = False,
+        flush_interval_s: float = FLUSH_INTERVAL_S,
+        clock: Callable[[], float] = time.monotonic,
+        workers: int | None = None,
+        frame_bits: int = 10,
+    ) -> None:
+        self.path = Path(path)
+        self.sensor = sensor
+        if self.path.exists() and not overwrite:
+            raise OutputExistsError(f"{self.path} exists; choose another name or allow overwriting")
+        self._clock = clock
+        self._flush_interval = flush_interval_s
+        self._last_flush = clock()
+        self._pool = ThreadPoolExecutor(max_workers=workers or min(4, os.cpu_count() or 1))
+        self._inflight: deque[tuple[str, int, Future]] = deque()
+        try:
+            self._file = h5py.File(self.path, "w", libver="latest")
+        except OSError as e:
+            self._pool.shutdown()
+            raise SessionWriteError(f"cannot create {self.path}: {e}") from e
+        self._closed = False
+        f = self._file
+        root = {
+            "schema_version": SCHEMA_VERSION,
+            "sensor": sensor.sensor,
+            "serial": sensor.serial,
+            "width": sensor.width,
+            "height": sensor.height,
+            "color_filter": sensor.color_filter,
+            "t_offset_us": int(sensor.t_offset_us),
+            "evcap_version": __version__,
+            "created": _now_iso(),
+            "complete": False,
+        }
+        for key, value in {**root, **(attrs or {})}.items():
+            f.attrs[key] = _attr_value(value)
+        h, w = sensor.height, sensor.width
+
+        def series(group: str, name: str, dtype: type, unit: str, shape: tuple = (), **kw):
+            chunks = kw.pop("chunks", (_SMALL_CHUNK, *shape))
+            d = f.create_dataset(
+                f"{group}/{name}",
+                shape=(0, *shape),
+                maxshape=(None, *shape),
+                dtype=dtype,
+                chunks=chunks,
+                compression="gzip",
+                compression_opts=DEFLATE_LEVEL,
+                shuffle=np.dtype(dtype).itemsize > 1,
+                **kw,
+            )
+            d.attrs["unit"] = unit
+            return d
+
+        for name, dtype in EVENT_FIELDS.items():
+            fill = {"fillvalue": T_FILL} if name == "t" else {}
+            unit = {"x": "pixel", "y": "pixel", "t": "us", "p": "1 = ON, 0 = OFF"}[name]
+            series("events", name, dtype, unit, chunks=(EVENT_CHUNK,), **fill)
+        series("events", "ms_to_idx", np.int64, "event index")
+        series("frames", "data", np.uint16, "ADC counts, 10 bit", (h, w), chunks=(1, h, w))
+        f["frames"].attrs["precision_bits"] = frame_bits
+        series("frames", "t", np.int64, "us")
+        series("frames", "exposure_us", np.int64, "us")
+        series("imu", "t", np.int64, "us")
+        series("imu", "accel", np.float32, "m/s^2", (3,))
+        series("imu", "gyro", np.float32, "rad/s", (3,))
+        series("imu", "temperature", np.float32, "degC")
+        series("triggers", "t", np.int64, "us")
+        series("triggers", "kind", np.uint8, "TriggerKind")
+        f["triggers/kind"].attrs["names"] = ",".join(k.name for k in TriggerKind)
+        f.swmr_mode = True
+
+        # Events not yet in a full chunk, per field; the tail chunk is rewritten until full.
+        self._tail: dict[str, list[np.ndarray]] = {name: [] for name in EVENT_FIELDS}
+        self._tail_n = 0
+        self._n_events = 0  # events appended
+        self._n_chunked = 0  # events in full chunks handed to the compressors
+        self._ms_done = 0  # millisecond-index entries settled
+        self._ms_pending: list[np.ndarray] = []
+        self._last_t = {"events": 0, "frames": 0, "imu": 0, "triggers": 0}
+        self._flushed_events = 0
+
+    # -- appending ---------------------------------------------------------------------------
+
+    def _check_order(self, stream: str, t: np.ndarray) -> None:
+        if t.size == 0:
+            return
+        if int(t[0]) < 0:
+            raise SessionFormatError(f"{stream}: t={int(t[0])} is before t = 0 of the session")
+        if int(t[0]) < self._last_t[stream]:
+            raise SessionFormatError(
+                f"{stream}: t={int(t[0])} comes after t={self._last_t[stream]}: "
+                "streams must be appended in time order"
+            )
+        self._last_t[stream] = int(t[-1])
+
+    def append_events(self, events: Events) -> None:
+        """Append events that follow (in time) those already written."""
+        s = self.sensor
+        if (events.width, events.height, events.color_filter) != (
+            s.width,
+            s.height,
+            s.color_filter,
+        ):
+            raise SessionFormatError(
+                f"events from a {events.width} x {events.height} {events.color_filter} sensor "
+                f"cannot go into a {s.width} x {s.height} {s.color_filter} session"
+            )
+        if len(events) == 0:
+            return
+        self._check_order("events", events.t)
+        self._ms_pending.append(_ms_entries(events.t, self._n_events, self._ms_done))
+        self._ms_done = int(events.t[-1]) // 1000 + 1
+        self._n_events += len(events)
+        for name in EVENT_FIELDS:
+            self._tail[name].append(getattr(events, name))
+        self._tail_n += len(events)
+        if self._tail_n >= EVENT_CHUNK:
+            full = (self._tail_n // EVENT_CHUNK) * EVENT_CHUNK
+            for name in EVENT_FIELDS:
+                tail = np.concatenate(self._tail[name])
+                for start in range(0, full, EVENT_CHUNK):
+                    chunk = tail[start : start + EVENT_CHUNK]
+                    index = (self._n_chunked + start) // EVENT_CHUNK
+                    self._inflight.append((name, index, self._pool.submit(_compress_chunk, chunk)))
+                self._tail[name] = [tail[full:]]
+            self._tail_n -= full
+            self._n_chunked += full
+            self._write_done(wait_above=4 * len(EVENT_FIELDS))
+        self._maybe_flush()
+
+    def _write_done(self, wait_above: int) -> None:
+        """Write compressed chunks in order: those ready, and more while over ``wait_above``."""
+        try:
+            while self._inflight and (
+                len(self._inflight) > wait_above or self._inflight[0][2].done()
+            ):
+                name, index, future = self._inflight.popleft()
+                d = self._file["events"][name]
+                end = (index + 1) * EVENT_CHUNK
+                if d.shape[0] < end:
+                    d.resize((end,))
+                d.id.write_direct_chunk((index * EVENT_CHUNK,), future.result())
+        except OSError as e:
+            raise self._write_error(e) from e
+
+    def _append_rows(self, group: str, columns: dict[str, np.ndarray]) -> None:
+        try:
+            g = self._file[group]
+            for name, values in columns.items():
+                d = g[name]
+                n = d.shape[0]
+                d.resize((n + values.shape[0], *d.shape[1:]))
+                d[n:] = values
+        except OSError as e:
+            raise self._write_error(e) from e
+        self._maybe_flush()
+
+    def append_frames(self, frames: Frames) -> None:
+        if len(frames) == 0:
+            return
+        shape = (self.sensor.height, self.sensor.width)
+        if frames.data.shape[1:] != shape:
+            raise SessionFormatError(
+                f"frames of {frames.data.shape[2]} x {frames.data.shape[1]} pixels cannot go "
+                f"into a {shape[1]} x {shape[0]} session"
+            )
+        self._check_order("frames", frames.t)
+        self._append_rows(
+            "frames", {"data": frames.data, "t": frames.t, "exposure_us": frames.exposure_us}
+        )
+
+    def append_imu(self, imu: ImuSamples) -> None:
+        if len(imu) == 0:
+            return
+        self._check_order("imu", imu.t)
+        self._append_rows(
+            "imu",
+            {"t": imu.t, "accel": imu.accel, "gyro": imu.gyro, "temperature": imu.temperature},
+        )
+
+    def append_triggers(self, triggers: Triggers) -> None:
+        if len(triggers) == 0:
+            return
+        self._check_order("triggers", triggers.t)
+        self._append_rows("triggers", {"t": triggers.t, "kind": triggers.kind})
+
+    # -- flushing and closing ----------------------------------------------------------------
+
+    @property
+    def events_written(self) -> int:
+        """Events appended so far (the file holds them once flushed)."""
+        return self._n_events
+
+    @property
+    def events_flushed(self) -> int:
+        """Events that are in the file for sure: a crash now keeps these."""
+        return self._flushed_events
+
+    def _maybe_flush(self) -> None:
+        if self._clock() - self._last_flush >= self._flush_interval:
+            self.flush()
+
+    def flush(self) -> None:
+        """Write everything appended so far to the file, so that a crash keeps it."""
+        self._write_done(wait_above=0)
+        try:
+            events = self._file["events"]
+            tail = self._tail_n
+            if tail:
+                index = self._n_chunked // EVENT_CHUNK
+                for name, dtype in EVENT_FIELDS.items():
+                    padded = np.zeros(EVENT_CHUNK, dtype)
+                    padded[:tail] = np.concatenate(self._tail[name])
+                    events[name].resize((self._n_events,))
+                    events[name].id.write_direct_chunk(
+                        (index * EVENT_CHUNK,), _compress_chunk(padded)
+                    )
+            if self._ms_pending:
+                new = np.concatenate(self._ms_pending)
+                d = events["ms_to_idx"]
+                n = d.shape[0]
+                d.resize((n + new.size,))
+                d[n:] = new
+                self._ms_pending = []
+            self._file.flush()
+        except OSError as e:
+            raise self._write_error(e) from e
+        self._flushed_events = self._n_events
+        self._last_flush = self._clock()
+
+    def _write_error(self, e: OSError) -> SessionWriteError:
+        free = None
+        with contextlib.suppress(OSError):
+            free = shutil.disk_usage(self.path.parent).free
+        reason = "the disk is full" if free is not None and free < (64 << 20) else str(e)
+        return SessionWriteError(
+            f"writing {self.path} failed: {reason}. The session holds the "
+            f"{self._flushed_events} events written before (the file stays readable)"
+        )
+
+    def close(self, attrs: dict | None = None) -> None:
+        """Flush, finish the millisecond index, and write ``attrs`` and complete=True."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            if self._n_events:
+                self._ms_pending.append(np.array([self._n_events], np.int64))
+            else:
+                self._ms_pending.append(np.zeros(1, np.int64))
+            self.flush()
+            self._file.close()
+            # New attributes cannot be added in SWMR mode: reopen without it.
+            with h5py.File(self.path, "r+") as f:
+                for key, value in (attrs or {}).items():
+                    f.attrs[key] = _attr_value(value)
+                f.attrs["complete"] = True
+        except OSError as e:
+            raise self._write_error(e) from e
+        finally:
+            self._pool.shutdown(cancel_futures=True)
+            if self._file.id.valid:
+                self._file.close()
+
+    def abort(self) -> None:
+        """Stop without the final steps (after an error): keep what was flushed."""
+        if self._closed:
+            return
+        self._closed = True
+        self._pool.shutdown(cancel_futures=True)
+        with contextlib.suppress(OSError):
+            self._file.close()
+
+    def __enter__(self) -> SessionWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None or exc_type is KeyboardInterrupt:
+            self.close()
+        else:
+            with contextlib.suppress(Exception):
+                self.flush()
+            self.abort()
+
+
+# -- reading ---------------------------------------------------------------------------------
+
+_REQUIRED = {
+    "events/x": np.uint16,
+    "events/y": np.uint16,
+    "events/t": np.int64,
+    "events/p": np.uint8,
+    "events/ms_to_idx": np.int64,
+    "frames/data": np.uint16,
+    "frames/t": np.int64,
+    "frames/exposure_us": np.int64,
+    "imu/t": np.int64,
+    "imu/accel": np.float32,
+    "imu/gyro": np.float32,
+    "imu/temperature": np.float32,
+    "triggers/t": np.int64,
+    "triggers/kind": np.uint8,
+}
+_ROOT_ATTRS = (
+    "schema_version",
+    "sensor",
+    "serial",
+    "width",
+    "height",
+    "color_filter",
+    "t_offset_us",
+    "evcap_version",
+    "created",
+)
+
+
+def _stored_eof(path: Path) -> int | None:
+    """The end-of-file address in an HDF5 superblock of version 2 or 3 (what evcap writes)."""
+    with open(path, "rb") as f:
+        head = f.read(36)
+    if len(head) == 36 and head[:8] == b"\x89HDF\r\n\x1a\n" and head[8] in (2, 3) and head[9] == 8:
+        return int.from_bytes(head[28:36], "little")
+    return None
+
+
+def _open_h5(path: Path) -> h5py.File:
+    if not path.exists():
+        raise InputNotFoundError(f"{path}: no such file")
+    if path.is_dir():
+        raise SessionFormatError(f"{path} is a folder, not a session file")
+    size = path.stat().st_size
+    if size == 0:
+        raise SessionFormatError(f"{path} is empty (0 bytes): not a session file")
+    if not h5py.is_hdf5(path):
+        raise SessionFormatError(f"{path} is not a session file (not HDF5)")
+    eof = _stored_eof(path)
+    if eof is not None and size < eof:
+        raise SessionFormatError(f"{path} is truncated: {size} bytes of the {eof} HDF5 wrote")
+    try:
+        return h5py.File(path, "r", rdcc_nbytes=_READ_CACHE)
+    except OSError as e:
+        if "already open for write" in str(e):
+            # A writer has it open, or was killed: SWMR read sees what it flushed. (Only after
+            # the EOF check above: SWMR read does not check it, and retries bad reads for long.)
+            return h5py.File(path, "r", swmr=True, rdcc_nbytes=_READ_CACHE)
+        if "truncated" in str(e):
+            raise SessionFormatError(f"{path} is truncated: {e}") from None
+        raise SessionFormatError(f"{path} cannot be read as HDF5 (corrupt?): {e}") from None
+
+
+class Session:
+    """An open session file (read-only). Open with ``Session.open(path)``.
+
+    Opening checks the schema version, the datasets and their dtypes, and (unless
+    ``validate=False``) scans the events: time order, coordinates inside the sensor, polarity,
+    and the millisecond index. A session whose writer stopped without closing it (a crash or a
+    kill) opens with what was flushed; ``complete`` is False for it.
+    """
+
+    def __init__(self, path: Path, f: h5py.File) -> None:
+        self.path = path
+        self._f = f
+        a = f.attrs
+        self.attrs: dict = {k: _py(v) for k, v in a.items()}
+        try:
+            self.sensor = SensorInfo(
+                sensor=str(self.attrs["sensor"]),
+                width=int(self.attrs["width"]),
+                height=int(self.attrs["height"]),
+                color_filter=str(self.attrs["color_filter"]),
+                serial=str(self.attrs["serial"]),
+                t_offset_us=int(self.attrs["t_offset_us"]),
+            )
+        except (ValueError, TypeError) as e:
+            raise SessionFormatError(f"{path}: bad sensor attributes: {e}") from None
+        self.complete = bool(self.attrs.get("complete", False))
+        self.n_events = self._common_length("events", ("x", "y", "t", "p"))
+        self.n_frames = self._common_length("frames", ("data", "t", "exposure_us"))
+        self.n_imu = self._common_length("imu", ("t", "accel", "gyro", "temperature"))
+        self.n_triggers = self._common_length("triggers", ("t", "kind"))
+        self._ms_to_idx: np.ndarray | None = None
+
+    @classmethod
+    def open(
+        cls,
+        path: str | os.PathLike,
+        *,
+        validate: bool = True,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> Session:
+        """Open and check a session; ``progress(done, total)`` follows the event scan."""
+        path = Path(path)
+        f = _open_h5(path)
+        try:
+            _check_structure(path, f)
+            session = cls(path, f)
+            if validate:
+                session._scan(progress)
+        except SessionFormatError:
+            f.close()
+            raise
+        except (OSError, KeyError, ValueError) as e:
+            f.close()
+            raise SessionFormatError(f"{path} is corrupt or truncated: {e}") from None
+        return session
+
+    def _common_length(self, group: str, names: tuple[str, ...]) -> int:
+        lengths = {name: self._f[group][name].shape[0] for name in names}
+        n = min(lengths.values())
+        if len(set(lengths.values())) > 1 and self.complete:
+            raise SessionFormatError(
+                f"{self.path}: the datasets of /{group} have different lengths {lengths}"
+            )
+        return n  # a crashed writer may leave one field ahead of the others: keep the common part
+
+    def _scan(self, progress: Callable[[int, int], None] | None) -> None:
+        """Check the events block by block, and the other streams' times."""
+        ev = self._f["events"]
+        w, h = self.sensor.width, self.sensor.height
+        index = self.ms_to_idx
+        last_t = 0
+        for start in range(0, self.n_events, _READ_BLOCK):
+            stop = min(start + _READ_BLOCK, self.n_events)
+            t = ev["t"][start:stop]
+            bad = first_unsorted(np.concatenate([[last_t], t]))
+            if bad >= 0 or (t.size and t[0] < 0):
+                at = start + max(bad - 1, 0)
+                if not self.complete:
+                    # The writer was stopped mid-flush: keep the events before the damage.
+                    self.n_events = at
+                    self._ms_to_idx = None
+                    break
+                raise SessionFormatError(
+                    f"{self.path}: /events/t is not in time order at event {at} "
+                    f"(t={int(t[max(bad - 1, 0)])} after t={last_t})"
+                )
+            for name, limit in (("x", w), ("y", h), ("p", 2)):
+                v = ev[name][start:stop]
+                if v.size and int(v.max()) >= limit:
+                    i = start + int(np.argmax(v >= limit))
+                    raise SessionFormatError(
+                        f"{self.path}: /events/{name}={int(v[i - start])} at event {i} is outside "
+                        f"the sensor (0..{limit - 1})"
+                    )
+            ms_from = int(last_t) // 1000 + 1 if start else 0
+            expected = _ms_entries(t, start, ms_from)
+            got = index[ms_from : ms_from + expected.size]
+            if not np.array_equal(np.minimum(got, self.n_events), expected[: got.size]):
+                raise SessionFormatError(
+                    f"{self.path}: /events/ms_to_idx does not match /events/t "
+                    f"(milliseconds {ms_from}..{ms_from + expected.size})"
+                )
+            if t.size:
+                last_t = int(t[-1])
+            if progress:
+                progress(stop, self.n_events)
+        if self.complete:
+            size = last_t // 1000 + 2 if self.n_events else 1
+            if index.size != size or int(index[-1]) != self.n_events:
+                raise SessionFormatError(
+                    f"{self.path}: /events/ms_to_idx has {index.size} entries ending at "
+                    f"{int(index[-1]) if index.size else None}; expected {size} ending at "
+                    f"{self.n_events}"
+                )
+        for group, n in (
+            ("frames", self.n_frames),
+            ("imu", self.n_imu),
+            ("triggers", self.n_triggers),
+        ):
+            t = self._f[group]["t"][:n]
+            bad = first_unsorted(t)
+            if bad >= 0:
+                raise SessionFormatError(f"{self.path}: /{group}/t is not in time order at {bad}")
+
+    # -- reading -------------------------------------------------------------------------------
+
+    @property
+    def ms_to_idx(self) -> np.ndarray:
+        if self._ms_to_idx is None:
+            index = self._f["events/ms_to_idx"][:]
+            self._ms_to_idx = np.minimum(index, self.n_events)
+            if first_unsorted(self._ms_to_idx) >= 0:
+                raise SessionFormatError(f"{self.path}: /events/ms_to_idx is not monotonic")
+        return self._ms_to_idx
+
+    @property
+    def groups(self) -> list[str]:
+        return sorted(self._f.keys())
+
+    def event_index(self, t_us: int) -> int:
+        """Index of the first event at or after ``t_us``, reading only a millisecond of events."""
+        if t_us <= 0:
+            return 0
+        index = self.ms_to_idx
+        ms = t_us // 1000
+        if ms >= index.size:
+            # Past the index: past the last event, or (crashed writer) past what was indexed.
+            lo, hi = (int(index[-1]) if index.size else 0), self.n_events
+        else:
+            lo = int(index[ms])
+            hi = int(index[ms + 1]) if ms + 1 < index.size else self.n_events
+        t = self._f["events/t"][lo:hi]
+        return lo + int(np.searchsorted(t, t_us, "left"))
+
+    def events(self, t0: int | None = None, t1: int | None = None) -> Events:
+        """The events with t0 <= t < t1 (microseconds; None for no bound)."""
+        lo = 0 if t0 is None else self.event_index(t0)
+        hi = self.n_events if t1 is None else max(lo, self.event_index(t1))
+        return self.events_by_index(lo, hi)
+
+    def events_by_index(self, start: int, stop: int) -> Events:
+        ev = self._f["events"]
+        start, stop = max(0, start), min(stop, self.n_events)
+        stop = max(start, stop)
+        s = self.sensor
+        return Events(
+            ev["x"][start:stop],
+            ev["y"][start:stop],
+            ev["t"][start:stop],
+            ev["p"][start:stop],
+            s.width,
+            s.height,
+            s.color_filter,
+        )
+
+    def iter_events(self, block: int = _READ_BLOCK) -> Iterator[Events]:
+        """All events, ``block`` at a time."""
+        for start in range(0, self.n_events, block):
+            yield self.events_by_index(start, start + block)
+
+    def _slice(self, group: str, n: int, t0: int | None, t1: int | None) -> slice:
+        t = self._f[group]["t"][:n]
+        lo = 0 if t0 is None else int(np.searchsorted(t, t0, "left"))
+        hi = n if t1 is None else int(np.searchsorted(t, t1, "left"))
+        return slice(lo, max(lo, hi))
+
+    def frames(self, t0: int | None = None, t1: int | None = None) -> Frames:
+        """The frames whose exposure starts in [t0, t1)."""
+        g = self._f["frames"]
+        s = self._slice("frames", self.n_frames, t0, t1)
+        data = g["data"][s]
+        if data.size and int(data.max()) > APS_MAX:
+            raise SessionFormatError(f"{self.path}: /frames/data has values above {APS_MAX}")
+        return Frames(data, g["t"][s], g["exposure_us"][s])
+
+    def imu(self, t0: int | None = None, t1: int | None = None) -> ImuSamples:
+        g = self._f["imu"]
+        s = self._slice("imu", self.n_imu, t0, t1)
+        return ImuSamples(g["t"][s], g["accel"][s], g["gyro"][s], g["temperature"][s])
+
+    def triggers(self, t0: int | None = None, t1: int | None = None) -> Triggers:
+        g = self._f["triggers"]
+        s = self._slice("triggers", self.n_triggers, t0, t1)
+        return Triggers(g["t"][s], g["kind"][s])
+
+    def time_range(self) -> tuple[int, int] | None:
+        """(first, last) timestamp over all streams, or None for an empty session."""
+        ends = []
+        for group, n in (
+            ("events", self.n_events),
+            ("frames", self.n_frames),
+            ("imu", self.n_imu),
+            ("triggers", self.n_triggers),
+        ):
+            if n:
+                t = self._f[group]["t"]
+                ends += [int(t[0]), int(t[n - 1])]
+        return (min(ends), max(ends)) if ends else None
+
+    def close(self) -> None:
+        self._f.close()
+
+    def __enter__(self) -> Session:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _py(value: object) -> object:
+    if isinstance(value, bytes):
+        return value.decode()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def _check_structure(path: Path, f: h5py.File) -> None:
+    version = f.attrs.get("schema_version")
+    if version is None:
+        raise SessionFormatError(f"{path} is HDF5 but not an evcap session (no schema_version)")
+    if int(version) != SCHEMA_VERSION:
+        raise SessionFormatError(
+            f"{path} has schema version {int(version)}; this evcap ({__version__}) reads "
+            f"version {SCHEMA_VERSION}"
+        )
+    missing = [k for k in _ROOT_ATTRS if k not in f.attrs]
+    if missing:
+        raise SessionFormatError(f"{path}: missing root attributes: {', '.join(missing)}")
+    if str(_py(f.attrs["color_filter"])) not in COLOR_FILTERS:
+        raise SessionFormatError(f"{path}: unknown color_filter {f.attrs['color_filter']!r}")
+    for name, dtype in _REQUIRED.items():
+        if name not in f:
+            raise SessionFormatError(f"{path}: missing dataset /{name}")
+        d = f[name]
+        if not isinstance(d, h5py.Dataset) or d.dtype != np.dtype(dtype):
+            raise SessionFormatError(
+                f"{path}: /{name} should be {np.dtype(dtype).name}, is "
+                f"{getattr(d, 'dtype', 'a group')}"
+            )
+    h, w = int(f.attrs["height"]), int(f.attrs["width"])
+    if f["frames/data"].shape[1:] != (h, w):
+        raise SessionFormatError(
+            f"{path}: /frames/data is {f['frames/data'].shape[1:]} per frame, the sensor {(h, w)}"
+        )

@@ -1,0 +1,1 @@
+"""evcap.poses: camera poses from the events (event frames, structure from motion)."""

@@ -1,0 +1,1 @@
+"""evcap.recon: event-only Gaussian Splatting reconstruction of geometry and material."""

@@ -1,0 +1,1 @@
+"""evcap.sim: synthetic scenes with ground truth and the event simulator."""

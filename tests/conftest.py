@@ -1,0 +1,15 @@
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+SHARED = Path(os.environ.get("EVCAP_SHARED", ROOT.parent / "shared"))
+SAMPLE_AEDAT4 = SHARED / "data" / "davis346-sample" / "davis346_test_data.aedat4"
+
+
+@pytest.fixture
+def sample_aedat4() -> Path:
+    if not SAMPLE_AEDAT4.exists():
+        pytest.skip(f"the real DAVIS346 sample is not at {SAMPLE_AEDAT4} (set EVCAP_SHARED)")
+    return SAMPLE_AEDAT4

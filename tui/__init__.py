@@ -1,0 +1,1 @@
+"""evcap.tui: the terminal UI for live capture monitoring."""
