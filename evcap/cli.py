@@ -47,6 +47,76 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_devices(args: argparse.Namespace) -> int:
+    from evcap.acquire.device import UDEV_RULE, Davis346, DeviceSpec, find
+    from evcap.errors import DeviceError
+
+    if args.udev:
+        print(UDEV_RULE, end="")
+        return 0
+    spec = DeviceSpec.parse(args.device)
+    backend = spec.backend()
+    devices = find(spec, backend)
+    if not devices:
+        print(
+            "No DAVIS346 found. Check the cable (use a USB 3 port) and that the camera's LED is "
+            "on.\nOn Linux the camera needs a udev rule: evcap devices --udev | sudo tee "
+            "/etc/udev/rules.d/65-inivation.rules, then replug it.",
+            file=sys.stderr,
+        )
+        return 1
+    status = 0
+    for usb_dev in devices:
+        try:
+            with Davis346(usb_dev, spec) as cam:
+                i = cam.info
+                print(
+                    f"{i.model}  serial {i.serial or '?'}  firmware {i.firmware}  "
+                    f"logic {i.logic}.{i.logic_patch}  chip {i.chip}  "
+                    f"color filter {i.color_filter}  IMU {i.geometry.imu_type}  "
+                    f"bus {usb_dev.bus} address {usb_dev.address}"
+                )
+        except DeviceError as e:
+            print(f"DAVIS346 at bus {usb_dev.bus} address {usb_dev.address}: {e}", file=sys.stderr)
+            status = 1
+    return status
+
+
+def _cmd_record(args: argparse.Namespace) -> int:
+    import signal
+
+    from evcap.acquire.bias_file import load_bias_file
+    from evcap.acquire.device import Davis346
+    from evcap.acquire.recorder import Recorder, RecordOptions
+
+    options = RecordOptions(
+        duration_s=args.duration, aps=not args.no_aps, imu=not args.no_imu, overwrite=args.force
+    )
+    if args.biases:
+        options.biases, options.settings = load_bias_file(args.biases)
+    with Davis346.open(args.device) as camera:
+        recorder = Recorder(camera, args.output, options)
+
+        def stop(signum, frame):
+            if recorder.stop_requested.is_set():  # a second Ctrl-C: stop now
+                raise KeyboardInterrupt
+            recorder.stop()
+
+        signal.signal(signal.SIGINT, stop)
+        signal.signal(signal.SIGTERM, stop)
+        print(
+            f"recording {camera.info.model} {camera.info.serial} into {args.output} (Ctrl-C stops)",
+            file=sys.stderr,
+        )
+        r = recorder.run()
+    dropped = sum(r.device_dropped.values())
+    print(
+        f"{args.output}: {r.events:,} events, {r.frames:,} frames, {r.imu:,} IMU samples, "
+        f"{r.triggers:,} triggers ({r.end_reason}; dropped on the device: {dropped:,})"
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="evcap",
@@ -79,6 +149,36 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("session", help="the session file (.h5)")
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.set_defaults(run=_cmd_info)
+
+    device_help = "usb (the first camera), usb:SERIAL, or replay:PATH (a hardware-replay fixture)"
+    p = sub.add_parser(
+        "devices",
+        help="list connected cameras (serial, firmware, logic, chip, color filter)",
+        description="List the connected DAVIS346 cameras.",
+    )
+    p.add_argument("--device", default="usb", help=device_help)
+    p.add_argument(
+        "--udev",
+        action="store_true",
+        help="print the udev rule that lets users open the camera (Linux)",
+    )
+    p.set_defaults(run=_cmd_devices)
+
+    p = sub.add_parser(
+        "record",
+        help="record a camera into a session file (events, frames, IMU, triggers)",
+        description="Record a DAVIS346 into a session file until Ctrl-C, the duration, or the "
+        "end of a replay fixture.",
+    )
+    p.add_argument("-o", "--output", required=True, help="the session file to write (.h5)")
+    p.add_argument("--device", default="usb", help=device_help)
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    p.add_argument("--biases", metavar="FILE", help="biases and settings (TOML) over the defaults")
+    p.add_argument("--no-aps", action="store_true", help="do not record APS frames")
+    p.add_argument("--no-imu", action="store_true", help="do not record IMU samples")
+    p.add_argument("--no-tui", action="store_true", help="no live view (plain progress lines)")
+    p.add_argument("-f", "--force", action="store_true", help="overwrite the output file")
+    p.set_defaults(run=_cmd_record)
     return parser
 
 

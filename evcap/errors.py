@@ -34,3 +34,23 @@ class ForeignFormatError(InputError):
 
 class SessionWriteError(EvcapError, OSError):
     """Writing a session failed (disk full, I/O error); what was flushed before is kept."""
+
+
+class DeviceError(EvcapError, OSError):
+    """The camera cannot be used: not found, no permission, wrong firmware, USB failure."""
+
+
+class DeviceNotFoundError(DeviceError):
+    """No camera matches."""
+
+
+class DevicePermissionError(DeviceError, PermissionError):
+    """The camera is there but this user may not open it (udev rule missing)."""
+
+
+class FirmwareError(DeviceError):
+    """The camera's firmware or FPGA logic version is not the one evcap speaks."""
+
+
+class DeviceLostError(DeviceError):
+    """The camera vanished (unplugged) while in use."""

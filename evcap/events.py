@@ -135,6 +135,32 @@ class Events:
         return f"Events({len(self)} events, {self.width} x {self.height} {self.color_filter}{span})"
 
     @classmethod
+    def _unchecked(
+        cls,
+        x: np.ndarray,
+        y: np.ndarray,
+        t: np.ndarray,
+        p: np.ndarray,
+        width: int,
+        height: int,
+        color_filter: str = "MONO",
+    ) -> Events:
+        """Events from arrays that already have the dtypes above and are known to be valid
+        (a producer that guarantees them, such as the stream decoder); skips the checks."""
+        ev = object.__new__(cls)
+        for name, value in (
+            ("x", x),
+            ("y", y),
+            ("t", t),
+            ("p", p),
+            ("width", width),
+            ("height", height),
+            ("color_filter", color_filter),
+        ):
+            object.__setattr__(ev, name, value)
+        return ev
+
+    @classmethod
     def empty(cls, width: int, height: int, color_filter: str = "MONO") -> Events:
         z = np.zeros(0, np.uint16)
         return cls(z, z, np.zeros(0, np.int64), np.zeros(0, np.uint8), width, height, color_filter)

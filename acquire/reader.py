@@ -1,0 +1,106 @@
+"""The reader thread: keeps bulk transfers in flight and hands the bytes over, in order.
+
+Nothing received is dropped: the queue to the consumer is unbounded. Timeouts and stalls are
+recovered from (a stall is cleared and the transfer resubmitted); a vanished device ends the
+reader with ``lost`` set.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from dataclasses import dataclass
+
+from evcap.acquire.transfers import BulkStream, Status
+
+MAX_CONSECUTIVE_ERRORS = 20
+
+
+@dataclass
+class ReaderStats:
+    transfers: int = 0  # completed with data
+    bytes: int = 0
+    timeouts: int = 0
+    stalls: int = 0
+    errors: int = 0
+
+
+class BulkReader:
+    """Runs ``stream`` with ``count`` transfers in flight in its own thread."""
+
+    def __init__(self, stream: BulkStream, count: int) -> None:
+        self._stream = stream
+        self._count = count
+        self._chunks: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="evcap-usb-reader", daemon=True)
+        self.stats = ReaderStats()
+        self.lost: str | None = None  # why the device was lost, if it was
+        self.failure: BaseException | None = None
+
+    def start(self) -> None:
+        self._thread.start()
+
+    @property
+    def running(self) -> bool:
+        return self._thread.is_alive()
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        """Cancel the transfers, keep the data they received, and end the thread."""
+        self._stop.set()
+        self._thread.join(timeout_s)
+
+    def take(self, timeout_s: float = 0.0) -> list[bytes]:
+        """All chunks received so far (waiting up to ``timeout_s`` for the first)."""
+        chunks = []
+        try:
+            chunks.append(
+                self._chunks.get(timeout=timeout_s) if timeout_s > 0 else self._chunks.get_nowait()
+            )
+            while True:
+                chunks.append(self._chunks.get_nowait())
+        except queue.Empty:
+            pass
+        return chunks
+
+    def _handle(self, slot: int, status: Status, data: bytes, resubmit: bool) -> None:
+        s = self._stream
+        if data:  # a cancelled or failed transfer may still carry data: keep it
+            self._chunks.put(data)
+            self.stats.transfers += 1
+            self.stats.bytes += len(data)
+        if status == Status.NO_DEVICE:
+            self.lost = "the camera was disconnected"
+            return
+        if status == Status.STALL:
+            self.stats.stalls += 1
+            s.clear_halt()
+        elif status == Status.TIMED_OUT:
+            self.stats.timeouts += 1
+        elif status in (Status.ERROR, Status.OVERFLOW):
+            self.stats.errors += 1
+            self._errors_in_a_row += 1
+            if self._errors_in_a_row >= MAX_CONSECUTIVE_ERRORS:
+                self.lost = f"{self._errors_in_a_row} USB transfers failed in a row"
+                return
+        if status == Status.COMPLETED:
+            self._errors_in_a_row = 0
+        if resubmit and status != Status.CANCELLED:
+            s.submit(slot)
+
+    def _run(self) -> None:
+        s = self._stream
+        self._errors_in_a_row = 0
+        try:
+            for slot in range(self._count):
+                s.submit(slot)
+            while not self._stop.is_set() and self.lost is None:
+                for slot, status, data in s.poll(0.05):
+                    self._handle(slot, status, data, resubmit=self.lost is None)
+            s.cancel()
+            while s.in_flight:
+                for slot, status, data in s.poll(0.05):
+                    self._handle(slot, status, data, resubmit=False)
+            s.close()
+        except BaseException as e:  # surfaced to the consumer, never lost silently
+            self.failure = e

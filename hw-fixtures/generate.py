@@ -1,0 +1,457 @@
+"""Make the hardware-replay fixtures in this folder (see README.md here for their format).
+
+    .venv/bin/python hw-fixtures/generate.py            # (re)write every fixture
+    .venv/bin/python hw-fixtures/generate.py --check    # compare with what is committed
+
+Each fixture's streams are made here, encoded into the DAVIS346 wire format with
+evcap.acquire.encoder, and written with the content a correct decoder must give back
+(expected.npz, expected.json). The expected content is computed here from the inputs, not by
+decoding. Everything is seeded: the same code gives the same bytes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from evcap.acquire.decoder import STANDARD_GRAVITY, Geometry
+from evcap.acquire.encoder import DEFAULT_IMU_CONFIG, StreamEncoder
+
+from evcap.events import Events
+from evcap.streams import Frames, TriggerKind, Triggers
+
+HERE = Path(__file__).resolve().parent
+SHARED = Path(os.environ.get("EVCAP_SHARED", HERE.parent.parent / "shared"))
+SAMPLE = SHARED / "data" / "davis346-sample" / "davis346_test_data.aedat4"
+W, H = 346, 260
+
+
+# -- the expected content, computed from the inputs -------------------------------------------
+
+
+class Content:
+    """What a stream carries, in the decoder's terms (host-continuous times)."""
+
+    def __init__(self) -> None:
+        self.events: list[Events] = []
+        self.frames: list[tuple[np.ndarray, int, int]] = []  # (full frame, t, exposure)
+        self.imu: list[tuple[int, np.ndarray]] = []  # (t, raw int16 x 7)
+        self.triggers: list[tuple[int, int]] = []  # (t, kind)
+
+    def add(self, events=None, frames=None, imu_raw=None, triggers=None, roi=None) -> None:
+        if events is not None:
+            self.events.append(events)
+        if frames is not None:
+            sx, sy, ex, ey = roi or (0, 0, W - 1, H - 1)
+            for i in range(len(frames)):
+                full = np.zeros((H, W), np.uint16)
+                full[sy : ey + 1, sx : ex + 1] = frames.data[i][sy : ey + 1, sx : ex + 1]
+                t, exp = int(frames.t[i]), int(frames.exposure_us[i])
+                self.frames.append((full, t, exp))
+                self.triggers += [
+                    (t, TriggerKind.APS_FRAME_START),
+                    (t, TriggerKind.APS_EXPOSURE_START),
+                    (t + exp, TriggerKind.APS_EXPOSURE_END),
+                    (t + exp, TriggerKind.APS_FRAME_END),
+                ]
+        if imu_raw is not None:
+            self.imu += list(zip(imu_raw[0].tolist(), imu_raw[1], strict=True))
+        if triggers is not None:
+            self.triggers += list(zip(triggers.t.tolist(), triggers.kind.tolist(), strict=True))
+
+    def arrays(self, imu_type: int = 1, imu_config: int = DEFAULT_IMU_CONFIG) -> dict:
+        ev = {
+            k: np.concatenate([getattr(e, k) for e in self.events]) if self.events else np.zeros(0)
+            for k in "xytp"
+        }
+        raw = np.array([r for _, r in self.imu], np.float64).reshape(-1, 7)
+        accel_lsb = 4.0 * 2.0 ** ((imu_config >> 2) & 3) / 65536.0 * STANDARD_GRAVITY
+        gyro_lsb = np.deg2rad(500.0 * 2.0 ** (imu_config & 3) / 65536.0)
+        temp = raw[:, 3] / 340.0 + 35.0 if imu_type == 1 else raw[:, 3] / 333.87 + 21.0
+        trig = sorted(self.triggers)
+        return {
+            "events_x": ev["x"].astype(np.uint16),
+            "events_y": ev["y"].astype(np.uint16),
+            "events_t": ev["t"].astype(np.int64),
+            "events_p": ev["p"].astype(np.uint8),
+            "frames_data": (
+                np.stack([f for f, _, _ in self.frames])
+                if self.frames
+                else np.zeros((0, H, W), np.uint16)
+            ),
+            "frames_t": np.array([t for _, t, _ in self.frames], np.int64),
+            "frames_exposure_us": np.array([e for _, _, e in self.frames], np.int64),
+            "imu_t": np.array([t for t, _ in self.imu], np.int64),
+            "imu_accel": (raw[:, 0:3] * accel_lsb).astype(np.float32),
+            "imu_gyro": (raw[:, 4:7] * gyro_lsb).astype(np.float32),
+            "imu_temperature": temp.astype(np.float32),
+            "triggers_t": np.array([t for t, _ in trig], np.int64),
+            "triggers_kind": np.array([k for _, k in trig], np.uint8),
+        }
+
+
+def write_fixture(
+    folder: Path,
+    *,
+    serial: str,
+    color_filter: int,
+    bulk: bytes,
+    content: Content,
+    transfers: np.ndarray | None = None,
+    faults: list[dict] | None = None,
+    registers: dict | None = None,
+    counters: dict | None = None,
+    description: str,
+) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    regs = {"2.3": color_filter, **(registers or {})}
+    lines = [
+        f"# {description}",
+        "[usb]",
+        "idVendor = 0x152A",
+        "idProduct = 0x841A",
+        "bcdDevice = 0x0006",
+        f'serial = "{serial}"',
+        'product = "DAVIS FX3"',
+        "",
+        "[registers]",
+    ]
+    lines += [f'"{k}" = {v}' for k, v in regs.items()]
+    (folder / "device.toml").write_text("\n".join(lines) + "\n")
+    (folder / "bulk.bin").write_bytes(bulk)
+    if transfers is not None:
+        transfers.astype("<u4").tofile(folder / "transfers.u32")
+    if faults:
+        text = "".join(
+            "[[fault]]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in f.items()) + "\n"
+            for f in faults
+        )
+        (folder / "faults.toml").write_text(text)
+    arrays = content.arrays()
+    with open(folder / "expected.npz", "wb") as f:
+        np.savez_compressed(f, **arrays)
+    summary = {
+        "description": description,
+        "serial": serial,
+        "color_filter": {0: "MONO", 1: "RGBG"}[color_filter],
+        "events": int(arrays["events_t"].size),
+        "frames": int(arrays["frames_t"].size),
+        "imu_samples": int(arrays["imu_t"].size),
+        "triggers": int(arrays["triggers_t"].size),
+        "counters": counters or {},
+    }
+    (folder / "expected.json").write_text(json.dumps(summary, indent=2) + "\n")
+
+
+# -- scenes -------------------------------------------------------------------------------------
+
+
+def moving_edge_events(rng, t0: int, t1: int, rate_hz: float) -> Events:
+    """Events of a colored bar sweeping right across a Bayer (RGBG) sensor: red pixels turn ON
+    at its leading edge, green and blue ones OFF; some background noise."""
+    n = int((t1 - t0) * rate_hz / 1e6)
+    t = np.sort(rng.integers(t0, t1, n))
+    edge = 20 + (t - t0) * (300 / max(1, t1 - t0))
+    x = np.clip(np.round(edge + rng.normal(0, 2.0, n)), 0, W - 1).astype(np.int64)
+    y = rng.integers(0, H, n)
+    red = (x % 2 == 0) & (y % 2 == 0)
+    p = red.astype(np.uint8)
+    noise = rng.random(n) < 0.1
+    x[noise], y[noise], p[noise] = (
+        rng.integers(0, W, noise.sum()),
+        rng.integers(0, H, noise.sum()),
+        rng.integers(0, 2, noise.sum()),
+    )
+    return Events(x, y, t, p, W, H, "RGBG")
+
+
+def scene_frames(rng, times: list[int], exposure: int) -> Frames:
+    """A smooth color-checker-like mosaic with noise, one frame per time."""
+    yy, xx = np.mgrid[0:H, 0:W]
+    base = 300 + 200 * np.sin(xx / 23.0) * np.cos(yy / 17.0) + 150 * ((xx // 40 + yy // 40) % 2)
+    data = [
+        np.clip(base + rng.normal(0, 8, (H, W)) + 40 * k, 0, 1023).astype(np.uint16)
+        for k in range(len(times))
+    ]
+    data[0][:4, :4] = 1023  # saturated pixels (encoded with the signal = 0 rule)
+    return Frames(np.stack(data), times, [exposure] * len(times))
+
+
+def imu_raw_samples(rng, t0: int, t1: int, period: int = 1000) -> tuple[np.ndarray, np.ndarray]:
+    t = np.arange(t0, t1, period, dtype=np.int64)
+    n = t.size
+    raw = np.zeros((n, 7), np.int16)
+    raw[:, 0:3] = (np.array([0.02, -0.99, 0.1]) * 8192 + rng.normal(0, 40, (n, 3))).astype(np.int16)
+    raw[:, 3] = (-2000 + rng.normal(0, 5, n)).astype(np.int16)
+    raw[:, 4:7] = (rng.normal(0, 300, (n, 3))).astype(np.int16)
+    return t, raw
+
+
+def color_scene(rng, t_end: int = 3_000_000) -> tuple[StreamEncoder, bytes, Content]:
+    """3 s across 91 timestamp wraps, with a timestamp reset at 1.5 s."""
+    roi = (140, 100, 203, 147)  # a 64 x 48 APS region of interest
+    reset_t = 1_500_000
+    enc = StreamEncoder(Geometry(color_filter="RGBG"))
+    content = Content()
+    events = moving_edge_events(rng, 0, t_end, 20_000)
+    frames = scene_frames(rng, list(range(50_000, t_end, 200_000)), 2_000)
+    imu = imu_raw_samples(rng, 500, t_end)
+    trig = Triggers(
+        [100_000, 100_500, reset_t, 2_200_000],
+        [
+            TriggerKind.EXTERNAL_SIGNAL_RISING_EDGE,
+            TriggerKind.EXTERNAL_SIGNAL_FALLING_EDGE,
+            TriggerKind.TIMESTAMP_RESET,
+            TriggerKind.EXTERNAL_SIGNAL_PULSE,
+        ],
+    )
+    bulk = enc.encode(events, frames, None, trig, roi=roi, imu_raw=imu)
+    content.add(events, frames, imu, trig, roi)
+    return enc, bulk, content
+
+
+def real_sample() -> tuple[bytes, Content]:
+    """The real DAVIS346 recording in ../shared: every event, IMU sample and trigger-producing
+    frame signal; 1 of its 59 frames (to keep the fixture small)."""
+    import aedat
+
+    ev, frames, imus = [], [], []
+    for packet in aedat.Decoder(str(SAMPLE)):
+        if "events" in packet:
+            ev.append(packet["events"])
+        elif "frame" in packet:
+            frames.append(packet["frame"])
+        elif "imus" in packet:
+            imus.append(packet["imus"])
+    ev, imu = np.concatenate(ev), np.concatenate(imus)
+    keep = [frames[29]]
+    t0 = min(int(ev["t"][0]), int(imu["t"][0]), int(frames[0]["exposure_begin_t"]))
+    events = Events(ev["x"], ev["y"], ev["t"].astype(np.int64) - t0, ev["p"].view(np.uint8), W, H)
+    fr = Frames(
+        np.stack([f["pixels"].astype(np.uint16) << 2 for f in keep]),
+        [int(f["exposure_begin_t"]) - t0 for f in keep],
+        [int(f["exposure_end_t"]) - int(f["exposure_begin_t"]) for f in keep],
+    )
+    # DV wrote g, deg/s and degC computed from the registers (+-4 g, +-500 deg/s, MPU-6050):
+    # recover the register values.
+    raw = np.column_stack(
+        [imu[f"accelerometer_{a}"] * 8192.0 for a in "xyz"]
+        + [(imu["temperature"] - 35.0) * 340.0]
+        + [imu[f"gyroscope_{a}"] * 65.536 for a in "xyz"]
+    )
+    motion = raw[:, [0, 1, 2, 4, 5, 6]]
+    assert np.abs(motion - np.round(motion)).max() < 0.01, "not +-4 g / +-500 deg/s data"
+    imu_raw = (imu["t"].astype(np.int64) - t0, np.round(raw).astype(np.int16))
+    enc = StreamEncoder()
+    bulk = enc.encode(events, fr, None, None, imu_raw=imu_raw)
+    content = Content()
+    content.add(events, fr, imu_raw)
+    return bulk, content
+
+
+def corrupted(rng) -> tuple[bytes, Content, dict]:
+    """A short color stream with malformed words between its pieces; each is skipped, and
+    counted in the named decoder counter."""
+    enc = StreamEncoder(Geometry(color_filter="RGBG"))
+    content = Content()
+    pieces = []
+    t = 0
+    bad_words = [
+        ([0x0006, 0x0012, 0x001F, 0x0000], "unknown_words", 4),  # unknown and reserved specials
+        (
+            [0x5400, 0x5F12, 0x6400, 0x6C00],
+            "unknown_words",
+            4,
+        ),  # misc8 subs 4, 15; misc10 subs 1, 3
+        ([0x1000 | 300, 0x2000 | 400, 0x3000 | 346], "dvs_out_of_range", 3),  # bad row, columns
+        ([0x4123, 0x4001], "aps_samples_skipped", 2),  # ADC samples outside any frame
+        ([0x5012, 0x5385, 0x0007], "imu_bad", 3),  # IMU byte, config, end outside a sample
+    ]
+    counters = {
+        "unknown_words": 0,
+        "dvs_out_of_range": 0,
+        "aps_samples_skipped": 0,
+        "imu_bad": 0,
+        "frames_bad": 0,
+        "time_went_backwards": 0,
+    }
+    for k in range(5):
+        ev = moving_edge_events(rng, t, t + 40_000, 50_000)
+        fr = scene_frames(rng, [t + 10_000], 1_000)
+        imu = imu_raw_samples(rng, t + 500, t + 40_000, 4000)
+        roi = (10, 10, 41, 33)
+        pieces.append(enc.encode(ev, fr, None, None, roi=roi, imu_raw=imu))
+        content.add(ev, fr, imu, None, roi)
+        words, name, count = bad_words[k]
+        # A backwards timestamp right before the true one: counted, and no event sees it.
+        now = int(ev.t[-1])
+        words = words + [0x8000 | 0, 0x8000 | (now % 0x8000)]
+        counters[name] += count
+        counters["time_went_backwards"] += 1 if now % 0x8000 else 0
+        pieces.append(np.asarray(words, "<u2").tobytes())
+        t += 40_000
+    # A frame whose readout breaks off (columns missing) and an IMU sample cut short:
+    # both dropped, and their APS triggers still appear.
+    assert (t + 100) // 0x8000 == now // 0x8000  # the device clock is still in this wrap
+    words = [0x8000 | ((t + 100) % 0x8000), 0x0008]
+    for value in (0, 0, 1, 1):  # ROI (0, 0) .. (1, 1): 2 x 2 pixels; high byte, low byte
+        words += [0x5100, 0x5200 | value]
+    words += [0x000E, 0x000B, 0x4200, 0x4200, 0x000D, 0x000F, 0x000A]  # one of two columns
+    words += [0x0005, 0x53E5, 0x5001, 0x5002, 0x0007]  # IMU: config and 2 of 14 bytes
+    content.triggers += [
+        (t + 100, TriggerKind.APS_FRAME_START),
+        (t + 100, TriggerKind.APS_EXPOSURE_START),
+        (t + 100, TriggerKind.APS_EXPOSURE_END),
+        (t + 100, TriggerKind.APS_FRAME_END),
+    ]
+    counters["frames_bad"] += 1
+    counters["imu_bad"] += 1
+    pieces.append(np.asarray(words, "<u2").tobytes())
+    return b"".join(pieces), content, counters
+
+
+def random_transfers(rng, total: int, low: int = 1, high: int = 16384) -> np.ndarray:
+    sizes = []
+    while sum(sizes) < total:
+        sizes.append(int(rng.integers(low, high)))
+    return np.asarray(sizes, np.uint32)
+
+
+# -- all fixtures ------------------------------------------------------------------------------
+
+
+def generate(out: Path) -> list[str]:
+    made = []
+    rng = np.random.default_rng(346)
+    _, bulk, content = color_scene(rng)
+    write_fixture(
+        out / "color-scene",
+        serial="00000042",
+        color_filter=1,
+        bulk=bulk,
+        content=content,
+        transfers=random_transfers(rng, len(bulk)),
+        description="Color-DAVIS346: a moving colored edge, 64x48 ROI frames, IMU at "
+        "1 kHz, external triggers, a timestamp reset; 3 s across 91 wraps; transfers "
+        "of random sizes (odd ones too)",
+    )
+    made.append("color-scene")
+
+    rng = np.random.default_rng(7)
+    enc = StreamEncoder(Geometry(color_filter="RGBG"))
+    content = Content()
+    ev_a = moving_edge_events(rng, 0, 300_000, 30_000)
+    imu_a = imu_raw_samples(rng, 500, 300_000, 2000)
+    part_a = enc.encode(ev_a, None, None, None, imu_raw=imu_a)
+    content.add(ev_a, None, imu_a)
+    ev_b = moving_edge_events(rng, 300_000, 500_000, 30_000)
+    part_b = enc.encode(ev_b)
+    write_fixture(
+        out / "disconnect",
+        serial="00000043",
+        color_filter=1,
+        bulk=part_a + part_b,
+        content=content,
+        faults=[{"at_byte": len(part_a), "kind": "disconnect"}],
+        description="Color-DAVIS346 unplugged after 0.3 s: everything before the "
+        "fault is expected, nothing after",
+    )
+    made.append("disconnect")
+
+    rng = np.random.default_rng(8)
+    enc = StreamEncoder(Geometry(color_filter="RGBG"))
+    ev = moving_edge_events(rng, 0, 400_000, 40_000)
+    fr = scene_frames(rng, [100_000, 300_000], 1_000)
+    imu = imu_raw_samples(rng, 500, 400_000, 2000)
+    roi = (0, 0, 31, 23)
+    bulk = enc.encode(ev, fr, None, None, roi=roi, imu_raw=imu)
+    content = Content()
+    content.add(ev, fr, imu, None, roi)
+    n = len(bulk)
+    write_fixture(
+        out / "timeouts-stall",
+        serial="00000044",
+        color_filter=1,
+        bulk=bulk,
+        content=content,
+        faults=[
+            {"at_byte": n // 5, "kind": "timeout", "count": 3},
+            {"at_byte": n // 2, "kind": "stall"},
+            {"at_byte": 3 * n // 4, "kind": "timeout", "count": 2},
+        ],
+        description="Color-DAVIS346 with read timeouts and an endpoint stall: all "
+        "recovered, nothing lost",
+    )
+    made.append("timeouts-stall")
+
+    rng = np.random.default_rng(9)
+    bulk, content, counters = corrupted(rng)
+    write_fixture(
+        out / "corrupted",
+        serial="00000045",
+        color_filter=1,
+        bulk=bulk,
+        content=content,
+        transfers=random_transfers(rng, len(bulk), 100, 3000),
+        counters=counters,
+        description="Color-DAVIS346 stream with malformed words: unknown specials and "
+        "misc codes, out-of-range addresses, stray APS and IMU words, a broken frame, "
+        "a cut IMU sample, a backwards timestamp; all skipped and counted",
+    )
+    made.append("corrupted")
+
+    if SAMPLE.exists():
+        bulk, content = real_sample()
+        write_fixture(
+            out / "davis346-sample",
+            serial="00000002",
+            color_filter=0,
+            bulk=bulk,
+            content=content,
+            description="the real DAVIS346 recording of "
+            "../shared/data/davis346-sample re-encoded: all 78,830 events and 2,363 "
+            "IMU samples, 1 of its 59 frames",
+        )
+        made.append("davis346-sample")
+    return made
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--check",
+        action="store_true",
+        help="regenerate into a temporary folder and compare with this one",
+    )
+    args = parser.parse_args()
+    if not args.check:
+        for name in generate(HERE):
+            print(f"wrote {HERE / name}")
+        return 0
+    with tempfile.TemporaryDirectory() as tmp:
+        differ = []
+        for name in generate(Path(tmp)):
+            for f in sorted((Path(tmp) / name).iterdir()):
+                mine = HERE / name / f.name
+                if f.name != "expected.npz" and (
+                    not mine.exists() or mine.read_bytes() != f.read_bytes()
+                ):
+                    differ.append(str(mine))
+                elif f.name == "expected.npz":
+                    a, b = np.load(f), np.load(mine)
+                    if set(a) != set(b) or any(not np.array_equal(a[k], b[k]) for k in a):
+                        differ.append(str(mine))
+        for path in differ:
+            print(f"differs from the generator: {path}")
+        return 1 if differ else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
