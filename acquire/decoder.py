@@ -85,29 +85,17 @@ for _code, _kind in _SPECIAL_TRIGGERS.items():
 
 
 @numba.njit(cache=True, nogil=True)
-def _decode_words(
-    words,
-    pos,
-    S,
-    C,
-    G,
-    trig_of_special,
-    ev_x,
-    ev_y,
-    ev_t,
-    ev_p,
-    n_ev,
-    tr_t,
-    tr_k,
-    n_tr,
-    imu_raw,
-    imu_t,
-    imu_cfg,
-    n_imu,
-    reset_buf,
-    frame_buf,
-):
-    """Decode words[pos:]; stop early (returning frame_ready=1) when a frame completes."""
+def _decode_words(words, pos, S, C, G, specials, events, n_ev, triggers, n_tr, imu, n_imu, aps):
+    """Decode words[pos:]; stop early (returning frame_ready=1) when a frame completes.
+
+    The outputs are filled from n_ev, n_tr, n_imu on: events = (x, y, t, p),
+    triggers = (t, kind), imu = (sample being read, raw bytes, t, config); aps = (reset reads,
+    frame being read) carries over between calls."""
+    ev_x, ev_y, ev_t, ev_p = events
+    tr_t, tr_k = triggers
+    imu_cur, imu_raw, imu_t, imu_cfg = imu
+    reset_buf, frame_buf = aps
+    trig_of_special = specials
     n = words.shape[0]
     dvs_cols = G[_G_DVS_COLS]
     dvs_rows = G[_G_DVS_ROWS]
@@ -186,7 +174,7 @@ def _decode_words(
                     C[_C_IMU_BAD] += 1
                     continue
                 k = S[_IMU_COUNT]
-                imu_raw[n_imu, k] = byte
+                imu_cur[k] = byte
                 k += 1
                 cfg = S[_IMU_CFG]
                 if k == 6 and not cfg & 0x20:  # no temperature: on to the gyro, or the end
@@ -244,10 +232,10 @@ def _decode_words(
                 S[_IMU_ACTIVE] = 1
                 S[_IMU_COUNT] = 0
                 S[_IMU_CFG] = -1
-                for k in range(14):
-                    imu_raw[n_imu, k] = 0
+                imu_cur[:] = 0
             elif data == 7:  # IMU end
                 if S[_IMU_ACTIVE] and S[_IMU_COUNT] == 14:
+                    imu_raw[n_imu, :] = imu_cur
                     imu_t[n_imu] = S[_NOW]
                     imu_cfg[n_imu] = S[_IMU_CFG]
                     n_imu += 1
@@ -379,6 +367,7 @@ class StreamDecoder:
         self._C = np.zeros(len(COUNTER_NAMES), np.int64)
         self._reset_buf = np.zeros(g.aps_columns * g.aps_rows, np.int64)
         self._frame_buf = np.zeros(g.aps_columns * g.aps_rows, np.uint16)
+        self._imu_cur = np.zeros(14, np.uint8)  # the IMU sample being read
         self._odd = b""
 
     @property
@@ -409,7 +398,7 @@ class StreamDecoder:
         ev_p = np.empty(n, np.uint8)
         tr_t = np.empty(n, np.int64)
         tr_k = np.empty(n, np.uint8)
-        n_imu_max = n // 17 + 1
+        n_imu_max = n // 17 + 1  # a sample takes 17 words; one may have begun before
         imu_raw = np.zeros((n_imu_max, 14), np.uint8)
         imu_t = np.empty(n_imu_max, np.int64)
         imu_cfg = np.empty(n_imu_max, np.int64)
@@ -423,20 +412,13 @@ class StreamDecoder:
                 self._C,
                 self._G,
                 _TRIGGER_OF_SPECIAL,
-                ev_x,
-                ev_y,
-                ev_t,
-                ev_p,
+                (ev_x, ev_y, ev_t, ev_p),
                 n_ev,
-                tr_t,
-                tr_k,
+                (tr_t, tr_k),
                 n_tr,
-                imu_raw,
-                imu_t,
-                imu_cfg,
+                (self._imu_cur, imu_raw, imu_t, imu_cfg),
                 n_imu,
-                self._reset_buf,
-                self._frame_buf,
+                (self._reset_buf, self._frame_buf),
             )
             if not ready:
                 break

@@ -253,8 +253,10 @@ class StreamEncoder:
         t = events.t[start:stop] - self._base
         if t.size and int(t[0]) < int(self._state[0]):
             raise InputError("encoder: events go back in time")
-        gaps = int((t[-1] - self._state[1]) // (WRAP * 4095)) + 1 if t.size else 0
-        out = np.zeros(3 * t.size + gaps + 2, np.uint16)
+        # At most: per event one row, one column, one timestamp and (for a long gap) wrap words
+        # of up to 4095 wraps each.
+        wraps = int((t[-1] - self._state[1]) // WRAP) if t.size else 0
+        out = np.zeros(4 * t.size + wraps // 4095 + 2, np.uint16)
         state = self._state.copy()
         state[3] = 0
         x, y = events.x[start:stop], events.y[start:stop]

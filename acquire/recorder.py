@@ -20,7 +20,7 @@ from evcap.acquire import protocol as P
 from evcap.acquire.decoder import Decoded, StreamDecoder
 from evcap.acquire.device import Davis346
 
-from evcap.errors import DeviceError, DeviceLostError, SessionWriteError
+from evcap.errors import DeviceError, DeviceLostError, DiskFullError, SessionWriteError
 from evcap.session import SensorInfo, SessionWriter
 
 STATS_INTERVAL_S = 1.0  # how often the device's dropped-event counters are read
@@ -36,12 +36,14 @@ class RecordOptions:
     transfers: int = 8  # bulk transfers in flight
     transfer_size: int = 8192  # bytes per transfer
     overwrite: bool = False  # replace an existing session file
+    min_free_bytes: int = 200 << 20  # stop (cleanly) when the disk has less free space
 
 
 @dataclass
 class RecordResult:
     path: Path
-    end_reason: str  # "stopped", "duration", "end of replay", "camera lost", "write failed"
+    # "stopped", "duration", "end of replay", "camera lost", "disk full", "write failed"
+    end_reason: str
     events: int = 0
     frames: int = 0
     imu: int = 0
@@ -131,10 +133,16 @@ class Recorder:
         try:
             while True:
                 self._write(writer, decoder, reader.take(0.05))
+                writer.flush_if_due()
                 now = self._clock()
                 if now >= next_stats and dev.streaming:
                     self._read_stats()
                     next_stats = now + STATS_INTERVAL_S
+                    free = writer.free_bytes()
+                    if free is not None and free < o.min_free_bytes:
+                        r.end_reason = "disk full"
+                        r.error = f"only {free / 1e6:.0f} MB left on the disk"
+                        break
                 if reader.lost or reader.failure:
                     r.end_reason, r.error = "camera lost", reader.lost or repr(reader.failure)
                     break
@@ -150,6 +158,17 @@ class Recorder:
                 self._read_stats()
             dev.stop()  # the reader takes in what was in flight, then ends
             self._write(writer, decoder, reader.take())
+            r.decoder, r.reader = decoder.counters, asdict(reader.stats)
+            r.device_dropped = dict(self.device_dropped)
+            writer.close(
+                {
+                    "end_reason": r.end_reason,
+                    "device_dropped_events": json.dumps(r.device_dropped),
+                    "host_dropped_events": r.decoder["dvs_out_of_range"],
+                    "decoder_counters": json.dumps(r.decoder),
+                    "usb_transfers": json.dumps(r.reader),
+                }
+            )
         except SessionWriteError as e:
             r.end_reason, r.error = "write failed", str(e)
             dev.stop()
@@ -159,21 +178,15 @@ class Recorder:
             dev.stop()
             writer.abort()
             raise
-        r.decoder, r.reader = decoder.counters, asdict(reader.stats)
-        r.device_dropped = dict(self.device_dropped)
-        writer.close(
-            {
-                "end_reason": r.end_reason,
-                "device_dropped_events": json.dumps(r.device_dropped),
-                "host_dropped_events": r.decoder["dvs_out_of_range"],
-                "decoder_counters": json.dumps(r.decoder),
-                "usb_transfers": json.dumps(r.reader),
-            }
-        )
         if r.end_reason == "camera lost":
             raise DeviceLostError(
                 f"the camera was lost ({r.error}); {self.path} holds everything received "
                 f"before: {r.events:,} events, {r.frames:,} frames"
+            )
+        if r.end_reason == "disk full":
+            raise DiskFullError(
+                f"recording stopped: {r.error}. {self.path} is complete up to now: "
+                f"{r.events:,} events, {r.frames:,} frames"
             )
         return r
 

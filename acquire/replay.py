@@ -134,7 +134,7 @@ class ReplayBackend(usb.backend.IBackend):
     @property
     def exhausted(self) -> bool:
         """bulk.bin has been served entirely (the camera is idle from now on)."""
-        return self._pos >= len(self.fixture.bulk) and not self._faults
+        return self._pos >= len(self.fixture.bulk) and not self._faults and not self._timeouts_left
 
     @property
     def bytes_served(self) -> int:
@@ -315,21 +315,25 @@ class ReplayBackend(usb.backend.IBackend):
         with self._lock:
             if ep != P.DATA_ENDPOINT:
                 raise _usb_error(_LIBUSB_ERROR_TIMEOUT, errno.ETIMEDOUT, "Operation timed out")
-            while self._faults and self._faults[0].at_byte <= self._pos:
+            # Faults at or before this byte play in order, each to its end (the timeouts
+            # used up, the stall cleared) before the next.
+            while True:
+                if self.gone:
+                    raise _no_device()
+                if self._halted:
+                    raise _usb_error(_LIBUSB_ERROR_PIPE, errno.EPIPE, "Pipe error")
+                if self._timeouts_left:
+                    self._timeouts_left -= 1
+                    raise _usb_error(_LIBUSB_ERROR_TIMEOUT, errno.ETIMEDOUT, "Operation timed out")
+                if not (self._faults and self._faults[0].at_byte <= self._pos):
+                    break
                 fault = self._faults.pop(0)
                 if fault.kind == "disconnect":
                     self.gone = True
                 elif fault.kind == "timeout":
-                    self._timeouts_left += fault.count
+                    self._timeouts_left = fault.count
                 else:
                     self._halted = True
-            if self.gone:
-                raise _no_device()
-            if self._halted:
-                raise _usb_error(_LIBUSB_ERROR_PIPE, errno.EPIPE, "Pipe error")
-            if self._timeouts_left:
-                self._timeouts_left -= 1
-                raise _usb_error(_LIBUSB_ERROR_TIMEOUT, errno.ETIMEDOUT, "Operation timed out")
             bulk = self.fixture.bulk
             if not self._streaming() or self._pos >= len(bulk):
                 raise _usb_error(_LIBUSB_ERROR_TIMEOUT, errno.ETIMEDOUT, "Operation timed out")

@@ -127,7 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "import",
-        help="convert an AEDAT 4 file (iniVation DV) into a session file",
+        help="convert an AEDAT 4 file (iniVation DV) into a session",
         description="Convert an AEDAT 4 file (events, frames, IMU, triggers) into a session.",
     )
     p.add_argument("file", help="the .aedat4 file")
@@ -143,7 +143,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "info",
-        help="describe a session: sensor, duration, stream counts, event rate",
+        help="check a session; show its sensor, duration and counts",
         description="Check a session file and describe it.",
     )
     p.add_argument("session", help="the session file (.h5)")
@@ -153,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     device_help = "usb (the first camera), usb:SERIAL, or replay:PATH (a hardware-replay fixture)"
     p = sub.add_parser(
         "devices",
-        help="list connected cameras (serial, firmware, logic, chip, color filter)",
+        help="list the connected cameras: serial, firmware, color filter",
         description="List the connected DAVIS346 cameras.",
     )
     p.add_argument("--device", default="usb", help=device_help)
@@ -166,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "record",
-        help="record a camera into a session file (events, frames, IMU, triggers)",
+        help="record a camera into a session file",
         description="Record a DAVIS346 into a session file until Ctrl-C, the duration, or the "
         "end of a replay fixture.",
     )
@@ -176,7 +176,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--biases", metavar="FILE", help="biases and settings (TOML) over the defaults")
     p.add_argument("--no-aps", action="store_true", help="do not record APS frames")
     p.add_argument("--no-imu", action="store_true", help="do not record IMU samples")
-    p.add_argument("--no-tui", action="store_true", help="no live view (plain progress lines)")
+    p.add_argument("--no-tui", action="store_true", help="no live view (the default for now)")
     p.add_argument("-f", "--force", action="store_true", help="overwrite the output file")
     p.set_defaults(run=_cmd_record)
     return parser

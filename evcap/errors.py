@@ -36,6 +36,10 @@ class SessionWriteError(EvcapError, OSError):
     """Writing a session failed (disk full, I/O error); what was flushed before is kept."""
 
 
+class DiskFullError(SessionWriteError):
+    """The disk ran (almost) full; the recording was stopped and its session closed."""
+
+
 class DeviceError(EvcapError, OSError):
     """The camera cannot be used: not found, no permission, wrong firmware, USB failure."""
 

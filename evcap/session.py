@@ -9,10 +9,14 @@ without reading the whole file.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import datetime
+import gc
 import os
 import shutil
+import sys
 import time
+import traceback
 import zlib
 from collections import deque
 from collections.abc import Callable, Iterator
@@ -132,11 +136,14 @@ class SessionWriter:
         self._pool = ThreadPoolExecutor(max_workers=workers or min(4, os.cpu_count() or 1))
         self._inflight: deque[tuple[str, int, Future]] = deque()
         try:
-            self._file = h5py.File(self.path, "w", libver="latest")
+            # No chunk cache: every write goes to the file at once, so that nothing is left to
+            # flush when a dataset is closed (after a write error that could never succeed).
+            self._file = h5py.File(self.path, "w", libver="latest", rdcc_nbytes=0)
         except OSError as e:
             self._pool.shutdown()
             raise SessionWriteError(f"cannot create {self.path}: {e}") from e
         self._closed = False
+        self._failed = False  # a write failed: HDF5 cannot finish the file
         f = self._file
         root = {
             "schema_version": SCHEMA_VERSION,
@@ -153,6 +160,7 @@ class SessionWriter:
         for key, value in {**root, **(attrs or {})}.items():
             f.attrs[key] = _attr_value(value)
         h, w = sensor.height, sensor.width
+        self._ds: dict[str, h5py.Dataset] = {}
 
         def series(group: str, name: str, dtype: type, unit: str, shape: tuple = (), **kw):
             chunks = kw.pop("chunks", (_SMALL_CHUNK, *shape))
@@ -168,7 +176,9 @@ class SessionWriter:
                 **kw,
             )
             d.attrs["unit"] = unit
-            return d
+            # Kept open: a dataset closed by garbage collection flushes then, where a write
+            # error (a full disk) could not be reported.
+            self._ds[f"{group}/{name}"] = d
 
         for name, dtype in EVENT_FIELDS.items():
             fill = {"fillvalue": T_FILL} if name == "t" else {}
@@ -245,7 +255,7 @@ class SessionWriter:
             self._tail_n -= full
             self._n_chunked += full
             self._write_done(wait_above=4 * len(EVENT_FIELDS))
-        self._maybe_flush()
+        self.flush_if_due()
 
     def _write_done(self, wait_above: int) -> None:
         """Write compressed chunks in order: those ready, and more while over ``wait_above``."""
@@ -254,7 +264,7 @@ class SessionWriter:
                 len(self._inflight) > wait_above or self._inflight[0][2].done()
             ):
                 name, index, future = self._inflight.popleft()
-                d = self._file["events"][name]
+                d = self._ds[f"events/{name}"]
                 end = (index + 1) * EVENT_CHUNK
                 if d.shape[0] < end:
                     d.resize((end,))
@@ -264,15 +274,14 @@ class SessionWriter:
 
     def _append_rows(self, group: str, columns: dict[str, np.ndarray]) -> None:
         try:
-            g = self._file[group]
             for name, values in columns.items():
-                d = g[name]
+                d = self._ds[f"{group}/{name}"]
                 n = d.shape[0]
                 d.resize((n + values.shape[0], *d.shape[1:]))
                 d[n:] = values
         except OSError as e:
             raise self._write_error(e) from e
-        self._maybe_flush()
+        self.flush_if_due()
 
     def append_frames(self, frames: Frames) -> None:
         if len(frames) == 0:
@@ -315,7 +324,9 @@ class SessionWriter:
         """Events that are in the file for sure: a crash now keeps these."""
         return self._flushed_events
 
-    def _maybe_flush(self) -> None:
+    def flush_if_due(self) -> None:
+        """Flush if the flush interval has passed (appending calls it; so should a writer's
+        loop while no data comes, so that the last data does not wait)."""
         if self._clock() - self._last_flush >= self._flush_interval:
             self.flush()
 
@@ -323,20 +334,18 @@ class SessionWriter:
         """Write everything appended so far to the file, so that a crash keeps it."""
         self._write_done(wait_above=0)
         try:
-            events = self._file["events"]
             tail = self._tail_n
             if tail:
                 index = self._n_chunked // EVENT_CHUNK
                 for name, dtype in EVENT_FIELDS.items():
                     padded = np.zeros(EVENT_CHUNK, dtype)
                     padded[:tail] = np.concatenate(self._tail[name])
-                    events[name].resize((self._n_events,))
-                    events[name].id.write_direct_chunk(
-                        (index * EVENT_CHUNK,), _compress_chunk(padded)
-                    )
+                    d = self._ds[f"events/{name}"]
+                    d.resize((self._n_events,))
+                    d.id.write_direct_chunk((index * EVENT_CHUNK,), _compress_chunk(padded))
             if self._ms_pending:
                 new = np.concatenate(self._ms_pending)
-                d = events["ms_to_idx"]
+                d = self._ds["events/ms_to_idx"]
                 n = d.shape[0]
                 d.resize((n + new.size,))
                 d[n:] = new
@@ -347,27 +356,41 @@ class SessionWriter:
         self._flushed_events = self._n_events
         self._last_flush = self._clock()
 
+    def free_bytes(self) -> int | None:
+        """Free space on the session's disk (None if it cannot be told)."""
+        try:
+            return shutil.disk_usage(self.path.parent).free
+        except OSError:
+            return None
+
     def _write_error(self, e: OSError) -> SessionWriteError:
-        free = None
-        with contextlib.suppress(OSError):
-            free = shutil.disk_usage(self.path.parent).free
-        reason = "the disk is full" if free is not None and free < (64 << 20) else str(e)
+        if isinstance(e, SessionWriteError):
+            return e
+        free = self.free_bytes()
+        if free is not None and free < (64 << 20):
+            reason = "the disk is full"
+        else:
+            reason = os.strerror(e.errno) if e.errno else str(e).splitlines()[0]
+        self._failed = True
         return SessionWriteError(
-            f"writing {self.path} failed: {reason}. The session holds the "
-            f"{self._flushed_events} events written before (the file stays readable)"
+            f"writing {self.path} failed ({reason}). The session holds the "
+            f"{self._flushed_events:,} events written before; the file stays readable"
         )
 
     def close(self, attrs: dict | None = None) -> None:
         """Flush, finish the millisecond index, and write ``attrs`` and complete=True."""
         if self._closed:
             return
-        self._closed = True
+        self._ms_pending.append(np.array([self._n_events], np.int64))  # the last entry
         try:
-            if self._n_events:
-                self._ms_pending.append(np.array([self._n_events], np.int64))
-            else:
-                self._ms_pending.append(np.zeros(1, np.int64))
             self.flush()
+        except SessionWriteError:
+            self.abort()
+            raise
+        self._closed = True
+        self._pool.shutdown()
+        self._ds.clear()
+        try:
             self._file.close()
             # New attributes cannot be added in SWMR mode: reopen without it.
             with h5py.File(self.path, "r+") as f:
@@ -376,10 +399,6 @@ class SessionWriter:
                 f.attrs["complete"] = True
         except OSError as e:
             raise self._write_error(e) from e
-        finally:
-            self._pool.shutdown(cancel_futures=True)
-            if self._file.id.valid:
-                self._file.close()
 
     def abort(self) -> None:
         """Stop without the final steps (after an error): keep what was flushed."""
@@ -387,8 +406,27 @@ class SessionWriter:
             return
         self._closed = True
         self._pool.shutdown(cancel_futures=True)
-        with contextlib.suppress(OSError):
-            self._file.close()
+        # After a write error HDF5 fails again whenever a dataset is closed, and h5py reports
+        # it from its destructors. Close everything here, with those reports (which say
+        # nothing new) silenced: first free the datasets the error's frames still hold.
+        seen, error = set(), sys.exc_info()[1]
+        while error is not None and id(error) not in seen:
+            seen.add(id(error))
+            traceback.clear_frames(error.__traceback__)
+            error = error.__cause__ or error.__context__
+        hooks = sys.unraisablehook, sys.excepthook
+        sys.unraisablehook = sys.excepthook = lambda *args: None
+        try:
+            self._ds.clear()
+            for _ in range(3):  # closing can fail half-way the first time
+                try:
+                    self._file.close()
+                    break
+                except Exception:
+                    continue
+            gc.collect()
+        finally:
+            sys.unraisablehook, sys.excepthook = hooks
 
     def __enter__(self) -> SessionWriter:
         return self
@@ -433,13 +471,26 @@ _ROOT_ATTRS = (
 )
 
 
-def _stored_eof(path: Path) -> int | None:
-    """The end-of-file address in an HDF5 superblock of version 2 or 3 (what evcap writes)."""
-    with open(path, "rb") as f:
-        head = f.read(36)
-    if len(head) == 36 and head[:8] == b"\x89HDF\r\n\x1a\n" and head[8] in (2, 3) and head[9] == 8:
-        return int.from_bytes(head[28:36], "little")
-    return None
+def _limit_read_attempts(fapl) -> None:
+    """Let HDF5 try a metadata read twice, not its SWMR default of 100 with backoff (which
+    makes a damaged file hang its reader for hours). h5py has no binding for it: call the
+    HDF5 library h5py is linked with."""
+    try:
+        lib = ctypes.CDLL(h5py.h5p.__file__)
+        set_attempts = lib.H5Pset_metadata_read_attempts
+    except (OSError, AttributeError):
+        return
+    set_attempts.argtypes = [ctypes.c_int64, ctypes.c_uint]
+    set_attempts(fapl.id, 2)
+
+
+def _open_swmr(path: Path) -> h5py.File:
+    """Open a file that a writer has open, or had when it was killed (SWMR read mode)."""
+    fapl = h5py.h5p.create(h5py.h5p.FILE_ACCESS)
+    fapl.set_cache(0, 521, _READ_CACHE, 0.75)
+    _limit_read_attempts(fapl)
+    fid = h5py.h5f.open(os.fsencode(path), h5py.h5f.ACC_RDONLY | h5py.h5f.ACC_SWMR_READ, fapl=fapl)
+    return h5py.File(fid)
 
 
 def _open_h5(path: Path) -> h5py.File:
@@ -447,24 +498,32 @@ def _open_h5(path: Path) -> h5py.File:
         raise InputNotFoundError(f"{path}: no such file")
     if path.is_dir():
         raise SessionFormatError(f"{path} is a folder, not a session file")
-    size = path.stat().st_size
-    if size == 0:
+    if path.stat().st_size == 0:
         raise SessionFormatError(f"{path} is empty (0 bytes): not a session file")
     if not h5py.is_hdf5(path):
         raise SessionFormatError(f"{path} is not a session file (not HDF5)")
-    eof = _stored_eof(path)
-    if eof is not None and size < eof:
-        raise SessionFormatError(f"{path} is truncated: {size} bytes of the {eof} HDF5 wrote")
     try:
         return h5py.File(path, "r", rdcc_nbytes=_READ_CACHE)
     except OSError as e:
-        if "already open for write" in str(e):
-            # A writer has it open, or was killed: SWMR read sees what it flushed. (Only after
-            # the EOF check above: SWMR read does not check it, and retries bad reads for long.)
-            return h5py.File(path, "r", swmr=True, rdcc_nbytes=_READ_CACHE)
-        if "truncated" in str(e):
-            raise SessionFormatError(f"{path} is truncated: {e}") from None
-        raise SessionFormatError(f"{path} cannot be read as HDF5 (corrupt?): {e}") from None
+        error = e
+    if "already open for write" in str(error) or "truncated" in str(error):
+        # Being recorded, or its recorder was killed or ran out of disk (then HDF5 may have
+        # allocated more than it could write): read what was flushed. A complete session that
+        # is shorter than HDF5 wrote is refused by Session.
+        try:
+            f = _open_swmr(path)
+        except OSError:
+            pass
+        else:
+            if "truncated" in str(error) and f.attrs.get("complete", False):
+                f.close()
+            else:
+                return f
+    if "truncated" in str(error):
+        raise SessionFormatError(f"{path} is truncated: {str(error).splitlines()[0]}")
+    raise SessionFormatError(
+        f"{path} cannot be read as HDF5 (corrupt or truncated?): {str(error).splitlines()[0]}"
+    )
 
 
 class Session:

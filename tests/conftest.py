@@ -1,6 +1,9 @@
 import os
 from pathlib import Path
 
+# Compiled loops check their indexing under test: a bug raises IndexError, not a segfault.
+os.environ.setdefault("NUMBA_BOUNDSCHECK", "1")
+
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -8,7 +11,7 @@ SHARED = Path(os.environ.get("EVCAP_SHARED", ROOT.parent / "shared"))
 SAMPLE_AEDAT4 = SHARED / "data" / "davis346-sample" / "davis346_test_data.aedat4"
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def sample_aedat4() -> Path:
     if not SAMPLE_AEDAT4.exists():
         pytest.skip(f"the real DAVIS346 sample is not at {SAMPLE_AEDAT4} (set EVCAP_SHARED)")

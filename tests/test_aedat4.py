@@ -27,14 +27,10 @@ def decode_reference(path):
 
 
 @pytest.fixture(scope="module")
-def imported(tmp_path_factory, request):
-    from conftest import SAMPLE_AEDAT4
-
-    if not SAMPLE_AEDAT4.exists():
-        pytest.skip(f"the real DAVIS346 sample is not at {SAMPLE_AEDAT4}")
+def imported(tmp_path_factory, sample_aedat4):
     out = tmp_path_factory.mktemp("import") / "sample.h5"
-    summary = import_aedat4(SAMPLE_AEDAT4, out)
-    return SAMPLE_AEDAT4, out, summary
+    summary = import_aedat4(sample_aedat4, out)
+    return sample_aedat4, out, summary
 
 
 def test_real_recording_imports_bit_exact(imported):

@@ -1,0 +1,416 @@
+"""Recording the hardware-replay fixtures, and the recorder under faults."""
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import usb.core
+from evcap.acquire import protocol as P
+from evcap.acquire.device import Davis346, DeviceSpec
+from evcap.acquire.recorder import Recorder, RecordOptions
+
+from evcap.errors import DeviceError, DeviceLostError, DevicePermissionError, FirmwareError
+from evcap.session import Session
+
+FIXTURES = Path(__file__).resolve().parents[2] / "hw-fixtures"
+NAMES = ["color-scene", "disconnect", "timeouts-stall", "corrupted", "davis346-sample"]
+
+
+def assert_expected_content(session_path: Path, fixture: Path) -> None:
+    exp = np.load(fixture / "expected.npz")
+    summary = json.loads((fixture / "expected.json").read_text())
+    with Session.open(session_path) as s:
+        assert s.sensor.serial == summary["serial"]
+        assert s.sensor.color_filter == summary["color_filter"]
+        ev = s.events()
+        for k in "xytp":
+            np.testing.assert_array_equal(getattr(ev, k), exp[f"events_{k}"])
+        fr = s.frames()
+        np.testing.assert_array_equal(fr.data, exp["frames_data"])
+        np.testing.assert_array_equal(fr.t, exp["frames_t"])
+        np.testing.assert_array_equal(fr.exposure_us, exp["frames_exposure_us"])
+        imu = s.imu()
+        np.testing.assert_array_equal(imu.t, exp["imu_t"])
+        np.testing.assert_allclose(imu.accel, exp["imu_accel"], rtol=1e-6)
+        np.testing.assert_allclose(imu.gyro, exp["imu_gyro"], rtol=1e-6)
+        np.testing.assert_allclose(imu.temperature, exp["imu_temperature"], rtol=1e-6)
+        tr = s.triggers()
+        order = np.lexsort((tr.kind, tr.t))  # at equal times the order is not kept
+        np.testing.assert_array_equal(tr.t[order], exp["triggers_t"])
+        np.testing.assert_array_equal(tr.kind[order], exp["triggers_kind"])
+        if summary["counters"]:
+            counters = json.loads(s.attrs["decoder_counters"])
+            for name, value in summary["counters"].items():
+                assert counters[name] == value, name
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_recording_each_fixture_gives_its_expected_content(tmp_path, name):
+    if not (FIXTURES / name).exists():
+        pytest.skip(f"{name} is made from ../shared, which is missing")
+    out = tmp_path / "s.h5"
+    with Davis346.open(f"replay:{FIXTURES / name}") as cam:
+        recorder = Recorder(cam, out)
+        if name == "disconnect":
+            with pytest.raises(DeviceLostError, match="camera was lost"):
+                recorder.run()
+            assert recorder.result.end_reason == "camera lost"
+        else:
+            result = recorder.run()
+            assert result.end_reason == "end of replay"
+    assert_expected_content(out, FIXTURES / name)
+
+
+def test_timeouts_and_stall_are_recovered(tmp_path):
+    with Davis346.open(f"replay:{FIXTURES / 'timeouts-stall'}") as cam:
+        result = Recorder(cam, tmp_path / "s.h5").run()
+        assert cam.backend.clear_halt_calls >= 2  # at start, and after the stall
+    assert result.reader["stalls"] == 1 and result.reader["timeouts"] >= 5
+
+
+def test_session_metadata_and_configuration(tmp_path):
+    biases = tmp_path / "b.toml"
+    biases.write_text(
+        "[biases]\nOnBn = { coarse = 6, fine = 200 }\n[settings]\naps_exposure_us = 8000\n"
+    )
+    from evcap.acquire.bias_file import load_bias_file
+
+    codes, settings = load_bias_file(biases)
+    with Davis346.open(f"replay:{FIXTURES / 'color-scene'}") as cam:
+        Recorder(cam, tmp_path / "s.h5", RecordOptions(biases=codes, settings=settings)).run()
+        writes = cam.backend.writes
+        regs = cam.backend.registers
+    on_code = P.coarse_fine_code(6, 200, n_type=True)
+    assert (5, 11, on_code) in writes
+    assert (2, 12, 8000 * 30) in writes  # exposure in ADC cycles
+    # the start sequence ends with the run flags on; stop turns them off again
+    assert writes.index((0, 3, 1)) < writes.index((9, 0, 1)) < writes.index((1, 3, 1))
+    assert regs[P.DVS_RUN] == regs[P.USB_RUN] == regs[P.MUX_RUN] == 0
+    with Session.open(tmp_path / "s.h5") as s:
+        a = s.attrs
+        assert s.complete and a["sensor"] == "Color-DAVIS346" and a["serial"] == "00000042"
+        assert (a["firmware_version"], a["logic_version"], a["chip"]) == (6, 18, "DAVIS346B")
+        assert json.loads(a["biases"])["OnBn"] == on_code
+        assert json.loads(a["settings"])["aps_exposure_us"] == 8000
+        assert json.loads(a["device_dropped_events"]) == {
+            "mux_dvs_dropped": 0,
+            "mux_extinput_dropped": 0,
+            "dvs_dropped": 0,
+        }
+        assert a["host_dropped_events"] == 0 and a["end_reason"] == "end of replay"
+        assert abs(a["t_offset_us"] / 1e6 - time.time()) < 60
+
+
+def test_device_side_drop_counters_are_recorded(fixture_copy, tmp_path):
+    path = fixture_copy("color-scene")
+    with open(path / "device.toml", "a") as f:
+        f.write('"0.83" = 1\n"0.84" = 5\n"1.85" = 0\n"1.86" = 42\n')
+    with Davis346.open(f"replay:{path}") as cam:
+        result = Recorder(cam, tmp_path / "s.h5").run()
+    assert result.device_dropped == {
+        "mux_dvs_dropped": (1 << 32) + 5,
+        "mux_extinput_dropped": 0,
+        "dvs_dropped": 42,
+    }
+
+
+def test_no_aps_no_imu(tmp_path):
+    with Davis346.open(f"replay:{FIXTURES / 'color-scene'}") as cam:
+        Recorder(cam, tmp_path / "s.h5", RecordOptions(aps=False, imu=False)).run()
+        regs = cam.backend.registers
+        assert (2, 4, 1) not in cam.backend.writes and (3, 2, 1) not in cam.backend.writes
+    assert regs[P.APS_RUN] == 0
+
+
+# -- the CLI, as a user runs it ------------------------------------------------------------------
+
+
+def evcap(*args, **kw):
+    return subprocess.run(
+        [sys.executable, "-m", "evcap", *args], capture_output=True, text=True, **kw
+    )
+
+
+def test_cli_record_replay(tmp_path):
+    out = tmp_path / "s.h5"
+    r = evcap(
+        "record", "--device", f"replay:{FIXTURES / 'color-scene'}", "-o", str(out), "--no-tui"
+    )
+    assert r.returncode == 0, r.stderr
+    assert "60,000 events, 15 frames, 3,000 IMU samples" in r.stdout
+    assert_expected_content(out, FIXTURES / "color-scene")
+    r = evcap("record", "--device", f"replay:{FIXTURES / 'color-scene'}", "-o", str(out))
+    assert r.returncode == 2 and "exists" in r.stderr  # never overwritten unasked
+
+
+def test_cli_disconnect_keeps_everything_before_and_fails(tmp_path):
+    out = tmp_path / "s.h5"
+    r = evcap("record", "--device", f"replay:{FIXTURES / 'disconnect'}", "-o", str(out))
+    assert r.returncode == 1
+    assert "camera was lost" in r.stderr and "Traceback" not in r.stderr
+    assert_expected_content(out, FIXTURES / "disconnect")
+
+
+def idle_fixture(fixture_copy) -> Path:
+    """color-scene, then a camera that stays quiet (timeouts) for minutes."""
+    path = fixture_copy("color-scene")
+    size = (path / "bulk.bin").stat().st_size
+    (path / "faults.toml").write_text(
+        f'[[fault]]\nat_byte = {size}\nkind = "timeout"\ncount = 100000\n'
+    )
+    return path
+
+
+def wait_for_events(path: Path, n: int, timeout_s: float = 30) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if path.exists():
+            try:
+                with Session.open(path, validate=False) as s:
+                    if s.n_events >= n:
+                        return
+            except Exception:
+                pass
+        time.sleep(0.2)
+    raise AssertionError(f"{path} did not reach {n} events")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_signal_closes_the_session_complete(tmp_path, fixture_copy, sig):
+    out = tmp_path / "s.h5"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "evcap",
+            "record",
+            "--device",
+            f"replay:{idle_fixture(fixture_copy)}",
+            "-o",
+            str(out),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    wait_for_events(out, 60_000)
+    proc.send_signal(sig)
+    stdout, stderr = proc.communicate(timeout=30)
+    assert proc.returncode == 0, stderr
+    assert "(stopped;" in stdout
+    with Session.open(out) as s:
+        assert s.complete and s.n_events == 60_000 and s.attrs["end_reason"] == "stopped"
+
+
+def test_kill_9_leaves_a_readable_file_with_what_was_flushed(tmp_path, fixture_copy):
+    out = tmp_path / "s.h5"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "evcap",
+            "record",
+            "--device",
+            f"replay:{idle_fixture(fixture_copy)}",
+            "-o",
+            str(out),
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    wait_for_events(out, 60_000)
+    time.sleep(1.0)  # more than one flush interval: everything received is on disk
+    proc.kill()
+    proc.wait()
+    with Session.open(out) as s:
+        assert not s.complete
+        assert s.n_events == 60_000 and s.n_frames == 15 and s.n_imu == 3000
+    assert_expected_content(out, FIXTURES / "color-scene")
+
+
+def small_disk(limit: int):
+    """A process whose files cannot grow beyond ``limit`` bytes, as on a full disk."""
+    import resource
+
+    def setup():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+
+    return setup
+
+
+def test_a_failing_disk_gives_a_clear_error(tmp_path):
+    out = tmp_path / "s.h5"
+    code = "import sys; from evcap.cli import main; sys.exit(main(sys.argv[1:]))"
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            code,
+            "record",
+            "--device",
+            f"replay:{FIXTURES / 'color-scene'}",
+            "-o",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        preexec_fn=small_disk(120_000),
+    )
+    assert r.returncode == 1, r.stderr
+    assert "failed (File too large)" in r.stderr and "Traceback" not in r.stderr
+    with Session.open(out) as s:  # readable, with whatever was flushed before (maybe nothing)
+        exp = np.load(FIXTURES / "color-scene" / "expected.npz")
+        np.testing.assert_array_equal(s.events().t, exp["events_t"][: s.n_events])
+
+
+WRITE_UNTIL_FULL = r"""
+import sys
+import numpy as np
+from evcap.events import Events
+from evcap.errors import SessionWriteError
+from evcap.session import SensorInfo, SessionWriter
+rng = np.random.default_rng(0)
+w = SessionWriter(sys.argv[1], SensorInfo("simulated", 346, 260))
+t = 0
+try:
+    for _ in range(100):
+        n = 50_000
+        ts = t + np.cumsum(rng.integers(0, 20, n))
+        t = int(ts[-1])
+        x, y, p = rng.integers(0, 346, n), rng.integers(0, 260, n), rng.integers(0, 2, n)
+        w.append_events(Events(x, y, ts, p, 346, 260))
+        w.flush()
+        print(w.events_flushed, flush=True)
+except SessionWriteError as e:
+    w.abort()
+    print("error:", e)
+"""
+
+
+def test_disk_full_keeps_everything_flushed_before(tmp_path):
+    out = tmp_path / "s.h5"
+    r = subprocess.run(
+        [sys.executable, "-c", WRITE_UNTIL_FULL, str(out)],
+        capture_output=True,
+        text=True,
+        preexec_fn=small_disk(1_000_000),
+    )
+    lines = r.stdout.splitlines()
+    assert r.returncode == 0 and lines[-1].startswith("error: writing"), r.stderr
+    flushed = int(lines[-2])
+    assert flushed >= 100_000
+    rng = np.random.default_rng(0)  # the events the script wrote, again
+    t = np.cumsum(rng.integers(0, 20, 50_000))
+    with Session.open(out) as s:
+        assert not s.complete
+        assert s.n_events >= flushed  # a chunk written after the last flush may be there too
+        np.testing.assert_array_equal(s.events_by_index(0, 50_000).t, t)
+
+
+def test_recording_stops_cleanly_when_the_disk_is_almost_full(tmp_path, fixture_copy, monkeypatch):
+    from evcap.errors import DiskFullError
+    from evcap.session import SessionWriter
+
+    monkeypatch.setattr(SessionWriter, "free_bytes", lambda self: 10 << 20)
+    with Davis346.open(f"replay:{idle_fixture(fixture_copy)}") as cam:
+        recorder = Recorder(cam, tmp_path / "s.h5")
+        with pytest.raises(DiskFullError, match="only 10 MB left on the disk"):
+            recorder.run()
+    with Session.open(tmp_path / "s.h5") as s:
+        assert s.complete and s.attrs["end_reason"] == "disk full"
+
+
+# -- cameras that cannot be used ----------------------------------------------------------------
+
+
+def test_wrong_firmware_and_logic(fixture_copy):
+    path = fixture_copy("color-scene")
+    toml = (path / "device.toml").read_text()
+    (path / "device.toml").write_text(toml.replace("bcdDevice = 0x0006", "bcdDevice = 0x0005"))
+    with pytest.raises(FirmwareError, match="firmware is version 5; evcap needs 6"):
+        Davis346.open(f"replay:{path}")
+    (path / "device.toml").write_text(toml + '"6.0" = 17\n')
+    with pytest.raises(FirmwareError, match="logic is version 17"):
+        Davis346.open(f"replay:{path}")
+    r = evcap("devices", "--device", f"replay:{path}")
+    assert r.returncode == 1 and "logic is version 17" in r.stderr
+
+
+def test_no_permission_says_how_to_fix_it(monkeypatch):
+    from evcap.acquire.replay import ReplayBackend
+
+    class Locked(ReplayBackend):
+        def set_configuration(self, dev_handle, config_value):
+            raise usb.core.USBError("Access denied (insufficient permissions)", -3, 13)
+
+    monkeypatch.setattr(DeviceSpec, "backend", lambda self: Locked(self.path))
+    with pytest.raises(DevicePermissionError, match="udev rule"):
+        Davis346.open(f"replay:{FIXTURES / 'color-scene'}")
+
+
+def test_no_camera(tmp_path):
+    r = evcap("record", "--device", "usb", "-o", str(tmp_path / "s.h5"))
+    assert r.returncode == 1 and "no DAVIS346 found" in r.stderr, r.stderr
+    assert not (tmp_path / "s.h5").exists()
+    r = evcap("devices")
+    assert r.returncode == 1 and "udev" in r.stderr
+    r = evcap("record", "--device", "usb:0123", "-o", str(tmp_path / "s.h5"))
+    assert "with serial 0123" in r.stderr
+
+
+def test_no_libusb_says_how_to_get_one(monkeypatch):
+    import usb.backend.libusb1
+
+    monkeypatch.setattr(usb.backend.libusb1, "get_backend", lambda *a, **k: None)
+    monkeypatch.setitem(sys.modules, "libusb_package", None)
+    with pytest.raises(DeviceError, match="pip install libusb-package"):
+        Davis346.open("usb")
+
+
+def test_devices_lists_and_prints_the_udev_rule():
+    r = evcap("devices", "--device", f"replay:{FIXTURES / 'color-scene'}")
+    assert r.returncode == 0
+    assert "Color-DAVIS346  serial 00000042  firmware 6  logic 18.1" in r.stdout
+    assert "color filter RGBG" in r.stdout
+    r = evcap("devices", "--udev")
+    assert 'ATTR{idVendor}=="152a"' in r.stdout
+
+
+def test_bad_device_names(tmp_path):
+    r = evcap("record", "--device", "camera", "-o", str(tmp_path / "s.h5"))
+    assert r.returncode == 2 and "usb, usb:SERIAL or replay:PATH" in r.stderr
+    r = evcap("record", "--device", f"replay:{tmp_path / 'nope'}", "-o", str(tmp_path / "s.h5"))
+    assert r.returncode == 2 and "not a folder" in r.stderr
+
+
+def test_record_does_not_import_torch(tmp_path):
+    code = (
+        "import sys\nfrom evcap.cli import main\n"
+        f"main(['record', '--device', 'replay:{FIXTURES / 'color-scene'}', '-o', "
+        f"'{tmp_path / 's.h5'}'])\n"
+        "print([m for m in ('torch', 'pycolmap', 'kornia', 'gsplat') if m in sys.modules])"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.stdout.strip().splitlines()[-1] == "[]", r.stderr
+
+
+def test_real_sample_replay_matches_the_aedat_import(tmp_path, sample_aedat4):
+    """The re-encoded real recording, recorded, equals the AEDAT 4 import of the original."""
+    from evcap.aedat4 import import_aedat4
+
+    import_aedat4(sample_aedat4, tmp_path / "a.h5")
+    with Davis346.open(f"replay:{FIXTURES / 'davis346-sample'}") as cam:
+        Recorder(cam, tmp_path / "r.h5").run()
+    with Session.open(tmp_path / "a.h5") as a, Session.open(tmp_path / "r.h5") as r:
+        ea, er = a.events(), r.events()
+        for k in "xyp":
+            np.testing.assert_array_equal(getattr(ea, k), getattr(er, k))
+        np.testing.assert_array_equal(ea.t, er.t)  # both relative to the earliest timestamp
+        np.testing.assert_allclose(a.imu().accel, r.imu().accel, rtol=1e-6)
+        np.testing.assert_array_equal(a.frames().data[29], r.frames().data[0])
