@@ -100,37 +100,46 @@ def _decode_words(words, pos, S, C, G, specials, events, n_ev, triggers, n_tr, i
     dvs_cols = G[_G_DVS_COLS]
     dvs_rows = G[_G_DVS_ROWS]
     dvs_invert = G[_G_DVS_INVERT]
+    # The hot path (timestamps, rows, columns) keeps its state in locals; the rare words
+    # work on S, which is brought up to date before them and read back after.
+    now = S[_NOW]
+    last_y = S[_LASTY]
+    time_base = S[_WRAP] + S[_BASE]
     while pos < n:
         w = np.int64(words[pos])
         pos += 1
         if w & 0x8000:  # timestamp
-            t = S[_WRAP] + (w & 0x7FFF) + S[_BASE]
-            if t >= S[_NOW]:
-                S[_NOW] = t
+            t = time_base + (w & 0x7FFF)
+            if t >= now:
+                now = t
             else:
                 C[_C_BACKWARDS] += 1
             continue
         code = (w >> 12) & 7
         data = w & 0x0FFF
-        if code == 1:  # DVS row
-            if data < dvs_rows:
-                S[_LASTY] = data
-            else:
-                C[_C_DVS_RANGE] += 1
-        elif code == 2 or code == 3:  # DVS column: one event
+        if code == 2 or code == 3:  # DVS column: one event
             if data < dvs_cols:
                 if dvs_invert:
-                    ev_x[n_ev] = S[_LASTY]
+                    ev_x[n_ev] = last_y
                     ev_y[n_ev] = data
                 else:
                     ev_x[n_ev] = data
-                    ev_y[n_ev] = S[_LASTY]
-                ev_t[n_ev] = S[_NOW]
+                    ev_y[n_ev] = last_y
+                ev_t[n_ev] = now
                 ev_p[n_ev] = code & 1
                 n_ev += 1
             else:
                 C[_C_DVS_RANGE] += 1
-        elif code == 7:  # timestamp wrap: data counts wraps
+            continue
+        if code == 1:  # DVS row
+            if data < dvs_rows:
+                last_y = data
+            else:
+                C[_C_DVS_RANGE] += 1
+            continue
+        S[_NOW] = now
+        S[_LASTY] = last_y
+        if code == 7:  # timestamp wrap: data counts wraps
             S[_WRAP] += 0x8000 * data
             t = S[_WRAP] + S[_BASE]
             if t >= S[_NOW]:
@@ -280,6 +289,10 @@ def _decode_words(words, pos, S, C, G, specials, events, n_ev, triggers, n_tr, i
                 pass
             else:
                 C[_C_UNKNOWN] += 1
+        now = S[_NOW]
+        time_base = S[_WRAP] + S[_BASE]
+    S[_NOW] = now
+    S[_LASTY] = last_y
     return pos, n_ev, n_tr, n_imu, 0
 
 

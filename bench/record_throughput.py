@@ -1,0 +1,74 @@
+"""End-to-end recording throughput: a replay camera serving a dense stream (12 Mev/s of events,
+frames at 25 fps, IMU at 1 kHz) as fast as it can, through the reader thread, the decoder and
+the session writer, into a session file.
+
+    .venv/bin/python bench/record_throughput.py [--seconds S]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from _common import report
+from _streams import dense_stream
+from evcap.acquire.device import Davis346
+from evcap.acquire.recorder import Recorder, RecordOptions
+
+from evcap.session import Session
+
+
+def make_fixture(folder: Path, data: bytes, transfer_size: int) -> None:
+    folder.mkdir()
+    np.full(len(data) // transfer_size + 1, transfer_size, "<u4").tofile(folder / "transfers.u32")
+    (folder / "device.toml").write_text(
+        '[usb]\nidVendor = 0x152A\nidProduct = 0x841A\nbcdDevice = 0x0006\nserial = "BENCH001"\n'
+        'product = "DAVIS FX3"\n\n[registers]\n"2.3" = 1\n'
+    )
+    (folder / "bulk.bin").write_bytes(data)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--seconds", type=float, default=4.0, help="stream length (device time)")
+    parser.add_argument(
+        "--transfer-size",
+        type=int,
+        default=8192,
+        help="bytes per bulk transfer (the replay serves transfers this big)",
+    )
+    args = parser.parse_args()
+    data, n_events = dense_stream(args.seconds)
+    with tempfile.TemporaryDirectory() as tmp:
+        fixture = Path(tmp) / "fixture"
+        make_fixture(fixture, data, args.transfer_size)
+        out = Path(tmp) / "bench.h5"
+        options = RecordOptions(transfer_size=args.transfer_size)
+        with Davis346.open(f"replay:{fixture}") as cam:
+            recorder = Recorder(cam, out, options)
+            start = time.perf_counter()
+            result = recorder.run()
+            wall = time.perf_counter() - start
+        with Session.open(out) as s:
+            assert s.n_events == n_events, (s.n_events, n_events)
+            size = out.stat().st_size
+    report(
+        "record_throughput",
+        {
+            "events": n_events,
+            "frames": result.frames,
+            "stream_MB": len(data) / 1e6,
+            "wall_s": wall,
+            "transfer_size": args.transfer_size,
+            "record_Mev_per_s": n_events / wall / 1e6,
+            "realtime_factor": args.seconds / wall,
+            "session_MB": size / 1e6,
+        },
+    )
+
+
+if __name__ == "__main__":
+    main()
