@@ -1,12 +1,14 @@
 import os
 from pathlib import Path
 
-# Compiled loops check their indexing under test: a bug raises IndexError, not a segfault.
-os.environ.setdefault("NUMBA_BOUNDSCHECK", "1")
-
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
+# Compiled loops check their indexing under test: a bug raises IndexError, not a segfault.
+# numba's cache does not tell such builds from the normal ones: keep them apart.
+os.environ.setdefault("NUMBA_BOUNDSCHECK", "1")
+os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".numba-test-cache"))
+
 SHARED = Path(os.environ.get("EVCAP_SHARED", ROOT.parent / "shared"))
 SAMPLE_AEDAT4 = SHARED / "data" / "davis346-sample" / "davis346_test_data.aedat4"
 
