@@ -18,7 +18,6 @@ import tomllib
 from pathlib import Path
 
 from evcap.acquire import protocol as P
-
 from evcap.errors import InputError, InputNotFoundError
 
 

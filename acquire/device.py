@@ -14,11 +14,11 @@ from pathlib import Path
 
 import usb.core
 import usb.util
+
 from evcap.acquire import protocol as P
 from evcap.acquire.decoder import Geometry
 from evcap.acquire.reader import BulkReader
 from evcap.acquire.transfers import BulkStream, LibusbBulkStream, SyncBulkStream
-
 from evcap.errors import (
     DeviceError,
     DeviceLostError,

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from evcap.acquire.decoder import STANDARD_GRAVITY, Geometry
 
+from evcap.acquire.decoder import STANDARD_GRAVITY, Geometry
 from evcap.errors import InputError
 from evcap.events import Events
 from evcap.streams import Frames, ImuSamples, TriggerKind, Triggers

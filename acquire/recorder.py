@@ -19,7 +19,6 @@ from pathlib import Path
 from evcap.acquire import protocol as P
 from evcap.acquire.decoder import Decoded, StreamDecoder
 from evcap.acquire.device import Davis346
-
 from evcap.errors import DeviceError, DeviceLostError, DiskFullError, SessionWriteError
 from evcap.session import SensorInfo, SessionWriter
 

@@ -31,8 +31,8 @@ from types import SimpleNamespace
 import numpy as np
 import usb.backend
 import usb.core
-from evcap.acquire import protocol as P
 
+from evcap.acquire import protocol as P
 from evcap.errors import InputError
 
 DEFAULT_TRANSFER = 8192

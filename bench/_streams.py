@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
-from evcap.acquire.encoder import StreamEncoder
 
+from evcap.acquire.encoder import StreamEncoder
 from evcap.events import Events
 from evcap.streams import Frames
 

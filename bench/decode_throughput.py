@@ -11,6 +11,7 @@ import time
 
 from _common import report
 from _streams import dense_stream
+
 from evcap.acquire.decoder import Geometry, StreamDecoder
 
 

@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 from _common import report
 from _streams import dense_stream
+
 from evcap.acquire.device import Davis346
 from evcap.acquire.recorder import Recorder, RecordOptions
-
 from evcap.session import Session
 
 

@@ -19,9 +19,9 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+
 from evcap.acquire.decoder import STANDARD_GRAVITY, Geometry
 from evcap.acquire.encoder import DEFAULT_IMU_CONFIG, StreamEncoder
-
 from evcap.events import Events
 from evcap.streams import Frames, TriggerKind, Triggers
 

@@ -3,11 +3,11 @@ through the encoder for any split of the stream into transfers."""
 
 import numpy as np
 import pytest
-from evcap.acquire.decoder import Geometry, StreamDecoder
-from evcap.acquire.encoder import StreamEncoder
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from evcap.acquire.decoder import Geometry, StreamDecoder
+from evcap.acquire.encoder import StreamEncoder
 from evcap.events import Events
 from evcap.streams import Frames, ImuSamples, TriggerKind, Triggers
 

@@ -5,9 +5,9 @@
 
 import numpy as np
 import pytest
+
 from evcap.acquire.device import Davis346, DeviceSpec, find
 from evcap.acquire.recorder import Recorder, RecordOptions
-
 from evcap.errors import DeviceError
 from evcap.session import Session
 

@@ -1,9 +1,9 @@
 """The protocol tables against the byte-exact values of davis346-usb.md (libcaer's)."""
 
 import pytest
+
 from evcap.acquire import protocol as P
 from evcap.acquire.bias_file import bias_codes, load_bias_file
-
 from evcap.errors import InputError
 
 # libcaer's default DAVIS346 bias codes (davis346-usb.md 2.5).

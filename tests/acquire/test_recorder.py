@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import usb.core
+
 from evcap.acquire import protocol as P
 from evcap.acquire.device import Davis346, DeviceSpec
 from evcap.acquire.recorder import Recorder, RecordOptions
-
 from evcap.errors import DeviceError, DeviceLostError, DevicePermissionError, FirmwareError
 from evcap.session import Session
 

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import usb.core
 import usb.util
+
 from evcap.acquire import protocol as P
 from evcap.acquire.replay import ReplayBackend
-
 from evcap.errors import InputError
 
 FIXTURES = Path(__file__).resolve().parents[2] / "hw-fixtures"
