@@ -129,9 +129,12 @@ class DeviceInfo:
         }
 
 
-def _serial_of(dev: usb.core.Device) -> str:
+def _string(dev: usb.core.Device, index: int) -> str:
+    """A string descriptor, "" when there is none or it cannot be read."""
+    if not index:
+        return ""
     try:
-        return usb.util.get_string(dev, dev.iSerialNumber) or "" if dev.iSerialNumber else ""
+        return usb.util.get_string(dev, index) or ""
     except (usb.core.USBError, ValueError):
         return ""
 
@@ -148,7 +151,7 @@ def find(spec: DeviceSpec, backend=None) -> list[usb.core.Device]:
     except usb.core.NoBackendError:
         raise DeviceError(NO_LIBUSB_HINT) from None
     if spec.serial is not None:
-        devices = [d for d in devices if _serial_of(d)[:8] == spec.serial[:8]]
+        devices = [d for d in devices if _string(d, d.iSerialNumber)[:8] == spec.serial[:8]]
     return devices
 
 
@@ -166,8 +169,13 @@ class Davis346:
             dev.set_configuration(P.CONFIGURATION)
             usb.util.claim_interface(dev, P.INTERFACE)
         except usb.core.USBError as e:
+            usb.util.dispose_resources(dev)
             raise self._usb_error(e, "open") from None
-        self.info = self._read_info()
+        try:
+            self.info = self._read_info()
+        except BaseException:
+            self._release()
+            raise
 
     @classmethod
     def open(cls, spec: str | DeviceSpec) -> Davis346:
@@ -292,13 +300,9 @@ class Davis346:
         capabilities = {name: self._reg(addr) for name, addr in P.DEVICE_CAPABILITIES.items()}
         capabilities["mux_statistics"] = self._reg(P.MUX_HAS_STATISTICS)
         capabilities["dvs_statistics"] = self._reg(P.DVS_HAS_STATISTICS)
-        try:
-            product = usb.util.get_string(dev, dev.iProduct) if dev.iProduct else ""
-        except (usb.core.USBError, ValueError):
-            product = ""
         return DeviceInfo(
-            serial=_serial_of(dev),
-            product=product or "",
+            serial=_string(dev, dev.iSerialNumber),
+            product=_string(dev, dev.iProduct),
             firmware=firmware,
             logic=logic,
             logic_patch=patch,
@@ -399,11 +403,14 @@ class Davis346:
         try:
             self.stop()
         finally:
-            try:
-                usb.util.release_interface(self._dev, P.INTERFACE)
-            except usb.core.USBError:
-                pass
-            usb.util.dispose_resources(self._dev)
+            self._release()
+
+    def _release(self) -> None:
+        try:
+            usb.util.release_interface(self._dev, P.INTERFACE)
+        except usb.core.USBError:
+            pass  # a vanished camera has nothing to release
+        usb.util.dispose_resources(self._dev)
 
     def __enter__(self) -> Davis346:
         return self
