@@ -62,7 +62,7 @@ COUNTER_NAMES = (
 ) = range(len(COUNTER_NAMES))
 
 # Indices into the geometry array G.
-_G_DVS_COLS, _G_DVS_ROWS, _G_DVS_INVERT, _G_APS_COLS, _G_APS_ROWS = 0, 1, 2, 3, 4
+_G_DVS_COLS, _G_DVS_ROWS, _G_DVS_INVERT, _G_APS_WIDTH, _G_APS_HEIGHT = 0, 1, 2, 3, 4
 _G_APS_FLIPX, _G_APS_FLIPY, _G_APS_INVERT = 5, 6, 7
 
 # Wire codes of the special events (code 0) that become triggers.
@@ -200,7 +200,8 @@ def _decode_words(words, pos, S, C, G, specials, events, n_ev, triggers, n_tr, i
                     S[_ROI_STEP] = step + 1
                     if step == 3:
                         sx0, sy0, ex, ey = S[_ROI_SX], S[_ROI_SY], S[_ROI_EX], S[_ROI_EY]
-                        if sx0 <= ex < G[_G_APS_COLS] and sy0 <= ey < G[_G_APS_ROWS]:
+                        # In image coordinates (after invertXY), as libcaer checks it.
+                        if sx0 <= ex < G[_G_APS_WIDTH] and sy0 <= ey < G[_G_APS_HEIGHT]:
                             S[_FPX] = sx0
                             S[_FPY] = sy0
                             S[_FSX] = ex + 1 - sx0
@@ -224,7 +225,8 @@ def _decode_words(words, pos, S, C, G, specials, events, n_ev, triggers, n_tr, i
             if (data >> 10) & 3:
                 C[_C_UNKNOWN] += 1
         else:  # code 0: special event
-            if data < 32 and trig_of_special[data] >= 0:
+            aps_only = data == 10 or data == 14 or data == 15
+            if data < 32 and trig_of_special[data] >= 0 and not (aps_only and S[_APS_IGNORE]):
                 if data == 1:  # timestamp reset: device time restarts at 0
                     S[_BASE] = S[_NOW]
                     S[_WRAP] = 0
@@ -243,7 +245,7 @@ def _decode_words(words, pos, S, C, G, specials, events, n_ev, triggers, n_tr, i
                 S[_IMU_CFG] = -1
                 imu_cur[:] = 0
             elif data == 7:  # IMU end
-                if S[_IMU_ACTIVE] and S[_IMU_COUNT] == 14:
+                if S[_IMU_ACTIVE] and S[_IMU_COUNT] == 14 and S[_IMU_CFG] & 0xE0:
                     imu_raw[n_imu, :] = imu_cur
                     imu_t[n_imu] = S[_NOW]
                     imu_cfg[n_imu] = S[_IMU_CFG]
@@ -281,9 +283,9 @@ def _decode_words(words, pos, S, C, G, specials, events, n_ev, triggers, n_tr, i
             elif data == 13:  # column end
                 rt = S[_READ_TYPE]
                 S[_COL0 + rt] += 1
-            elif data == 14:
+            elif data == 14 and not S[_APS_IGNORE]:
                 S[_EXP_START] = S[_NOW]
-            elif data == 15:
+            elif data == 15 and not S[_APS_IGNORE]:
                 S[_EXP_END] = S[_NOW]
             elif data < 32 and trig_of_special[data] >= 0:
                 pass
@@ -319,6 +321,15 @@ class Geometry:
     @property
     def height(self) -> int:
         return self.dvs_columns if self.dvs_invert_xy else self.dvs_rows
+
+    @property
+    def aps_width(self) -> int:
+        """Width of the frames (after invertXY)."""
+        return self.aps_rows if self.aps_invert_xy else self.aps_columns
+
+    @property
+    def aps_height(self) -> int:
+        return self.aps_columns if self.aps_invert_xy else self.aps_rows
 
 
 @dataclass
@@ -365,8 +376,8 @@ class StreamDecoder:
                 g.dvs_columns,
                 g.dvs_rows,
                 int(g.dvs_invert_xy),
-                g.aps_columns,
-                g.aps_rows,
+                g.aps_width,
+                g.aps_height,
                 int(g.aps_flip_x),
                 int(g.aps_flip_y),
                 int(g.aps_invert_xy),
@@ -411,7 +422,9 @@ class StreamDecoder:
         ev_p = np.empty(n, np.uint8)
         tr_t = np.empty(n, np.int64)
         tr_k = np.empty(n, np.uint8)
-        n_imu_max = n // 17 + 1  # a sample takes 17 words; one may have begun before
+        # A sample takes at least 5 words (start, configuration, 2 bytes, end); the first
+        # may have begun in an earlier call.
+        n_imu_max = n // 5 + 1
         imu_raw = np.zeros((n_imu_max, 14), np.uint8)
         imu_t = np.empty(n_imu_max, np.int64)
         imu_cfg = np.empty(n_imu_max, np.int64)
@@ -445,10 +458,7 @@ class StreamDecoder:
         events = Events._unchecked(
             ev_x[:n_ev], ev_y[:n_ev], ev_t[:n_ev], ev_p[:n_ev], g.width, g.height, g.color_filter
         )
-        h, w = g.aps_rows, g.aps_columns
-        if g.aps_invert_xy:
-            h, w = w, h
-        data3 = np.stack(frames) if frames else np.zeros((0, h, w), np.uint16)
+        data3 = np.stack(frames) if frames else np.zeros((0, g.aps_height, g.aps_width), np.uint16)
         accel, gyro, temperature = imu_physical(
             imu_raw[:n_imu], imu_cfg[:n_imu], g.imu_type, g.imu_flip
         )
@@ -462,8 +472,7 @@ class StreamDecoder:
     def _completed_frame(self) -> np.ndarray:
         """The frame just read, placed in a full-sensor image (pixels outside its ROI are 0)."""
         g, S = self.geometry, self._S
-        h, w = (g.aps_columns, g.aps_rows) if g.aps_invert_xy else (g.aps_rows, g.aps_columns)
-        full = np.zeros((h, w), np.uint16)
+        full = np.zeros((g.aps_height, g.aps_width), np.uint16)
         sx, sy, px, py = int(S[_FSX]), int(S[_FSY]), int(S[_FPX]), int(S[_FPY])
         full[py : py + sy, px : px + sx] = self._frame_buf[: sx * sy].reshape(sy, sx)
         return full

@@ -165,8 +165,15 @@ class Davis346:
         self.backend = dev._ctx.backend
         self.streaming = False
         self.reader: BulkReader | None = None
+        self._reader_stuck = False
         try:
-            dev.set_configuration(P.CONFIGURATION)
+            # Set the configuration only if it differs (setting it again can reset the device).
+            try:
+                active = dev.get_active_configuration().bConfigurationValue
+            except usb.core.USBError:
+                active = None
+            if active != P.CONFIGURATION:
+                dev.set_configuration(P.CONFIGURATION)
             usb.util.claim_interface(dev, P.INTERFACE)
         except usb.core.USBError as e:
             usb.util.dispose_resources(dev)
@@ -224,17 +231,19 @@ class Davis346:
         """Several writes in as few requests as the protocol allows (682 entries each)."""
         for i in range(0, len(writes), P.MULTIPLE_MAX_ENTRIES):
             part = writes[i : i + P.MULTIPLE_MAX_ENTRIES]
+            data = P.pack_multiple(part)
             try:
-                self._dev.ctrl_transfer(
-                    P.VENDOR_OUT,
-                    P.REQUEST_CONFIG_MULTIPLE,
-                    len(part),
-                    0,
-                    P.pack_multiple(part),
-                    1000,
+                n = self._dev.ctrl_transfer(
+                    P.VENDOR_OUT, P.REQUEST_CONFIG_MULTIPLE, len(part), 0, data, 1000
                 )
             except usb.core.USBError as e:
                 raise self._usb_error(e, "writing registers") from None
+            if n != len(data):
+                raise DeviceError(f"short write of {len(part)} registers")
+
+    def reset_timestamps(self) -> None:
+        """Restart the device clock at 0 (and, on a timestamp master, its slaves')."""
+        self.write_registers([(*P.MUX_TIMESTAMP_RESET, 1), (*P.MUX_TIMESTAMP_RESET, 0)])
 
     def read_counter64(self, module: int, param: int) -> int:
         """A 64-bit statistics counter (high word at param, low at param + 1)."""
@@ -319,8 +328,14 @@ class Davis346:
     def configure(self, biases: dict[str, int], settings: P.Settings) -> None:
         """Send the full configuration (biases, chip, FPGA modules), as libcaer's default config."""
         # One write per register, in libcaer's order (it sends its default config this way).
+        g = self.info.geometry
         for module, param, value in P.default_config(
-            self.info.capabilities, self.info.clocks, biases, settings
+            self.info.capabilities,
+            self.info.clocks,
+            biases,
+            settings,
+            dvs_size=(g.dvs_columns, g.dvs_rows),
+            aps_size=(g.aps_width, g.aps_height),
         ):
             self.write_register(module, param, value)
 
@@ -343,6 +358,15 @@ class Davis346:
             raise self._usb_error(e, "clearing the endpoint") from None
         self.reader = BulkReader(self._bulk_stream(transfer_size, transfers), transfers)
         self.reader.start()
+        self.streaming = True  # from here on, stop() undoes what was started
+        try:
+            self._run(aps, imu)
+        except BaseException:
+            self.stop()
+            raise
+        return self.reader
+
+    def _run(self, aps: bool, imu: bool) -> None:
         self.write_register(*P.MUX_RUN_CHIP, 1)
         self._sleep(0.2)  # biases settle
         for address in (P.USB_RUN, P.MUX_TIMESTAMP_RUN, P.MUX_RUN):
@@ -356,8 +380,6 @@ class Davis346:
         for address in P.RUN_SEQUENCE:
             if address not in skip:
                 self.write_register(*address, 1)
-        self.streaming = True
-        return self.reader
 
     def _sleep(self, seconds: float) -> None:
         if self.spec.kind == "usb":  # the replay camera needs no settling
@@ -381,8 +403,8 @@ class Davis346:
             self._sleep(0.01)  # the device flushes its last short packet
         except DeviceError:
             pass  # a lost camera cannot be stopped; the reader has ended already
-        if self.reader is not None:
-            self.reader.stop()
+        if self.reader is not None and not self.reader.stop():
+            self._reader_stuck = True  # its transfers may still be in flight: keep them
 
     def dropped_counters(self) -> dict[str, int]:
         """The device-side dropped-event counters (statistics registers)."""
@@ -406,6 +428,8 @@ class Davis346:
             self._release()
 
     def _release(self) -> None:
+        if self._reader_stuck:
+            return
         try:
             usb.util.release_interface(self._dev, P.INTERFACE)
         except usb.core.USBError:

@@ -188,7 +188,7 @@ class StreamEncoder:
         values directly, instead of ``imu``'s physical values. ``frame_resets`` gives the reset
         reads of each frame (default: a level that makes the signal read reset - value)."""
         g = self.geometry
-        roi = roi or (0, 0, g.aps_columns - 1, g.aps_rows - 1)
+        roi = roi or (0, 0, g.aps_width - 1, g.aps_height - 1)
         items: list[tuple[int, int, int, object]] = []  # (time, order, kind, payload)
         if frames is not None:
             for i in range(len(frames)):

@@ -285,14 +285,41 @@ class Settings:
     dvs_refractory_filter_us: int = 0  # the FPGA's refractory filter (0 = off)
     usb_early_packet_delay_us: int = 1000  # the device flushes short USB packets after this
 
+    def __post_init__(self) -> None:
+        from evcap.errors import InputError
+
+        limits = {  # the ranges libcaer accepts
+            "aps_exposure_us": (0, 4_194_303),
+            "aps_frame_interval_us": (0, 8_388_607),
+            "imu_sample_rate_divider": (0, 255),
+            "imu_accel_dlpf": (0, 7),
+            "imu_accel_full_scale": (0, 3),
+            "imu_gyro_dlpf": (0, 7),
+            "imu_gyro_full_scale": (0, 3),
+            "dvs_background_filter_us": (0, 4095 * 250),
+            "dvs_refractory_filter_us": (0, 4095 * 250),
+            "usb_early_packet_delay_us": (125, 8191 * 125),
+        }
+        for name, (low, high) in limits.items():
+            value = getattr(self, name)
+            if not low <= value <= high:
+                raise InputError(f"setting {name} = {value} is outside {low}..{high}")
+
 
 def default_config(
-    has: dict[str, int], clocks: Clocks, biases: dict[str, int], settings: Settings
+    has: dict[str, int],
+    clocks: Clocks,
+    biases: dict[str, int],
+    settings: Settings,
+    dvs_size: tuple[int, int] = (346, 260),
+    aps_size: tuple[int, int] = (346, 260),
 ) -> list[tuple[int, int, int]]:
     """The (module, param, value) writes that configure the camera, in libcaer's order.
 
     ``has`` holds the capability registers read at open (filter presence, global shutter,
-    IMU type, generator), keyed by the names of DEVICE_CAPABILITIES."""
+    IMU type, generator), keyed by the names of DEVICE_CAPABILITIES; the sizes are
+    (columns, rows) of the DVS and of the APS image."""
+    (dvs_cols, dvs_rows), (aps_cols, aps_rows) = dvs_size, aps_size
     w: list[tuple[int, int, int]] = []
     for name, bias in BIASES.items():
         w.append((Module.BIAS, bias.param, biases[name]))
@@ -301,7 +328,8 @@ def default_config(
     w += [(Module.MUX, 4, 1), (Module.MUX, 5, 1), (Module.DVS, 4, 0), (Module.DVS, 5, 0)]
     if has["dvs_pixel_filter"]:
         for k in range(8):
-            w += [(Module.DVS, 11 + 2 * k, 260), (Module.DVS, 12 + 2 * k, 346)]
+            # a slot is disabled by pointing it outside the array
+            w += [(Module.DVS, 11 + 2 * k, dvs_rows), (Module.DVS, 12 + 2 * k, dvs_cols)]
     if has["dvs_ba_filter"]:
         ba, refr = settings.dvs_background_filter_us, settings.dvs_refractory_filter_us
         w += [
@@ -314,8 +342,8 @@ def default_config(
         w += [
             (Module.DVS, 41, 0),
             (Module.DVS, 42, 0),
-            (Module.DVS, 43, 345),
-            (Module.DVS, 44, 259),
+            (Module.DVS, 43, dvs_cols - 1),
+            (Module.DVS, 44, dvs_rows - 1),
         ]
     if has["dvs_skip_filter"]:
         w += [(Module.DVS, 51, 0), (Module.DVS, 52, 5)]
@@ -325,7 +353,8 @@ def default_config(
     if has["aps_global_shutter"]:
         gs = int(settings.aps_global_shutter)
         w += [(Module.BIAS, CHIP_GLOBAL_SHUTTER, gs), (Module.APS, 7, gs)]
-    w += [(Module.APS, 8, 0), (Module.APS, 9, 0), (Module.APS, 10, 345), (Module.APS, 11, 259)]
+    w += [(Module.APS, 8, 0), (Module.APS, 9, 0)]
+    w += [(Module.APS, 10, aps_cols - 1), (Module.APS, 11, aps_rows - 1)]
     w += [
         (Module.APS, 12, round(settings.aps_exposure_us * clocks.adc)),
         (Module.APS, 13, round(settings.aps_frame_interval_us * clocks.adc)),

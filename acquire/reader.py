@@ -45,10 +45,12 @@ class BulkReader:
     def running(self) -> bool:
         return self._thread.is_alive()
 
-    def stop(self, timeout_s: float = 2.0) -> None:
-        """Cancel the transfers, keep the data they received, and end the thread."""
+    def stop(self, timeout_s: float = 5.0) -> bool:
+        """Cancel the transfers, keep the data they received, and end the thread. False if
+        the thread did not end in time (its transfers may still be in flight)."""
         self._stop.set()
         self._thread.join(timeout_s)
+        return not self._thread.is_alive()
 
     def take(self, timeout_s: float = 0.0) -> list[bytes]:
         """All chunks received so far (waiting up to ``timeout_s`` for the first)."""

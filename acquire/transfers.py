@@ -153,25 +153,28 @@ class LibusbBulkStream:
             self._slot_of[ctypes.addressof(t)] = slot
 
     def _on_complete(self, transfer_p) -> None:
+        # Runs in whichever thread handles libusb events: the reader's poll, or another
+        # thread's synchronous control transfer. deque append and popleft are atomic.
         t = transfer_p.contents
         slot = self._slot_of[ctypes.addressof(t)]
-        self._in_flight.discard(slot)
-        data = bytes(self._buffers[slot][: t.actual_length])
+        data = ctypes.string_at(self._buffers[slot], t.actual_length)
         self._done.append((slot, Status(t.status), data))
+        self._in_flight.discard(slot)
 
     def submit(self, slot: int) -> None:
+        self._in_flight.add(slot)  # before submitting: the callback may come at once
         ret = self._lib.libusb_submit_transfer(self._transfers[slot])
-        if ret == 0:
-            self._in_flight.add(slot)
-        else:  # LIBUSB_ERROR_NO_DEVICE (-4) and others: report as a completion
+        if ret != 0:  # LIBUSB_ERROR_NO_DEVICE (-4) and others: report as a completion
+            self._in_flight.discard(slot)
             self._done.append((slot, Status.NO_DEVICE if ret == -4 else Status.ERROR, b""))
 
     def poll(self, timeout_s: float) -> list[tuple[int, Status, bytes]]:
         if not self._done:
             tv = _Timeval(int(timeout_s), int((timeout_s % 1) * 1e6))
             self._lib.libusb_handle_events_timeout_completed(self._ctx, ctypes.byref(tv), None)
-        done = list(self._done)
-        self._done.clear()
+        done = []
+        while self._done:
+            done.append(self._done.popleft())
         return done
 
     def clear_halt(self) -> None:

@@ -277,3 +277,30 @@ def test_random_bytes_never_crash(data, cut):
         Events(out.events.x, out.events.y, out.events.t, out.events.p, W, H, "RGBG")
         assert (np.diff(out.events.t) >= 0).all()
         assert out.frames.data.max(initial=0) <= 1023
+
+
+def test_frames_with_invert_xy_round_trip():
+    g = Geometry(aps_columns=260, aps_rows=346, aps_invert_xy=True, aps_flip_x=True)
+    assert (g.aps_width, g.aps_height) == (346, 260)
+    rng = np.random.default_rng(5)
+    frames = Frames(rng.integers(0, 1023, (1, H, W)), [100], [50])
+    roi = (10, 20, 109, 69)  # image coordinates, as libcaer takes them
+    out, d = decode(np.frombuffer(StreamEncoder(g).encode(frames=frames, roi=roi), "<u2"), g)
+    assert d.counters["frames"] == 1
+    np.testing.assert_array_equal(out.frames.data[0, 20:70, 10:110], frames.data[0, 20:70, 10:110])
+
+
+def test_many_small_imu_samples_in_one_transfer():
+    # temperature only: 5 words per sample
+    words = [w for k in range(300) for w in imu_words(0x20, [340 * k])]
+    out, d = decode(words)
+    assert len(out.imu) == 300 and d.counters["imu_bad"] == 0
+    np.testing.assert_allclose(out.imu.temperature[:3], [35, 36, 37])
+    out, d = decode(imu_words(0x00, []))  # a sample with no sensor on carries nothing
+    assert len(out.imu) == 0 and d.counters["imu_bad"] == 1
+
+
+def test_aps_signals_before_the_first_frame_start_are_ignored():
+    # Data start (or a timestamp reset) in the middle of a frame: its end is not a frame.
+    out, d = decode([0x8000 | 5, 0x000F, 0x000C, 0x4001, 0x000D, 0x000A])
+    assert len(out.triggers) == 0 and len(out.frames) == 0

@@ -104,6 +104,8 @@ def test_bias_file(tmp_path):
         ("[biases]\nOnBn = { volts = 9 }\n", "bias OnBn"),
         ("[settings]\nexposure = 5\n", "unknown setting 'exposure'"),
         ("[settings]\naps_exposure_us = -5\n", "aps_exposure_us must be a non-negative int"),
+        ("[settings]\naps_exposure_us = 5000000\n", "aps_exposure_us = 5000000 is outside"),
+        ("[settings]\nimu_gyro_full_scale = 4\n", "imu_gyro_full_scale = 4 is outside 0..3"),
         ("[bias]\n", "unknown table"),
         ("not toml [", "not valid TOML"),
     ],

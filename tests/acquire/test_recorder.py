@@ -346,7 +346,7 @@ def test_no_permission_says_how_to_fix_it(monkeypatch):
     from evcap.acquire.replay import ReplayBackend
 
     class Locked(ReplayBackend):
-        def set_configuration(self, dev_handle, config_value):
+        def open_device(self, dev):  # libusb_open fails so without the udev rule
             raise usb.core.USBError("Access denied (insufficient permissions)", -3, 13)
 
     monkeypatch.setattr(DeviceSpec, "backend", lambda self: Locked(self.path))
