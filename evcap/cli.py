@@ -82,6 +82,30 @@ def _cmd_devices(args: argparse.Namespace) -> int:
     return status
 
 
+def _status_line(recorder):
+    """An on_batch callback that redraws one status line on stderr, twice a second."""
+    import time
+
+    started, last = time.monotonic(), [0.0]
+
+    def show(batch) -> None:
+        now = time.monotonic()
+        if now - last[0] < 0.5:
+            return
+        last[0] = now
+        r = recorder.result
+        size = recorder.path.stat().st_size / 1e6 if recorder.path.exists() else 0.0
+        print(
+            f"\r{now - started:7.1f} s  {r.events:>13,} events  {r.frames:>6,} frames  "
+            f"{r.imu:>8,} IMU  {size:8.1f} MB",
+            end="",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    return show
+
+
 def _cmd_record(args: argparse.Namespace) -> int:
     import signal
 
@@ -96,6 +120,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
         options.biases, options.settings = load_bias_file(args.biases)
     with Davis346.open(args.device) as camera:
         recorder = Recorder(camera, args.output, options)
+        if sys.stderr.isatty():
+            recorder.on_batch = _status_line(recorder)
 
         def stop(signum, frame):
             if recorder.stop_requested.is_set():  # a second Ctrl-C: stop now
@@ -109,6 +135,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         r = recorder.run()
+    if sys.stderr.isatty():
+        print(file=sys.stderr)  # end the status line
     dropped = sum(r.device_dropped.values())
     print(
         f"{args.output}: {r.events:,} events, {r.frames:,} frames, {r.imu:,} IMU samples, "
