@@ -412,14 +412,7 @@ STOP_SEQUENCE = [
     USB_RUN,
     MUX_RUN_CHIP,
 ]
-RUN_SEQUENCE = [
-    DVS_RUN,
-    APS_RUN,
-    IMU_RUN_ACCEL,
-    IMU_RUN_GYRO,
-    IMU_RUN_TEMPERATURE,
-    EXTINPUT_RUN_DETECTOR,
-]
+RUN_SEQUENCE = STOP_SEQUENCE[:6]  # DVS, APS, IMU (3), EXTINPUT: set after the MUX runs
 
 
 def pack_multiple(writes: list[tuple[int, int, int]]) -> bytes:

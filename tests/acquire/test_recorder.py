@@ -180,23 +180,16 @@ def wait_for_events(path: Path, n: int, timeout_s: float = 30) -> None:
     raise AssertionError(f"{path} did not reach {n} events")
 
 
+def start_recording(out: Path, fixture: Path, **popen) -> subprocess.Popen:
+    command = ["record", "--device", f"replay:{fixture}", "-o", str(out)]
+    return subprocess.Popen([sys.executable, "-m", "evcap", *command], **popen)
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_signal_closes_the_session_complete(tmp_path, fixture_copy, sig):
     out = tmp_path / "s.h5"
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "evcap",
-            "record",
-            "--device",
-            f"replay:{idle_fixture(fixture_copy)}",
-            "-o",
-            str(out),
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
+    proc = start_recording(
+        out, idle_fixture(fixture_copy), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
     )
     wait_for_events(out, 60_000)
     proc.send_signal(sig)
@@ -209,19 +202,8 @@ def test_signal_closes_the_session_complete(tmp_path, fixture_copy, sig):
 
 def test_kill_9_leaves_a_readable_file_with_what_was_flushed(tmp_path, fixture_copy):
     out = tmp_path / "s.h5"
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "evcap",
-            "record",
-            "--device",
-            f"replay:{idle_fixture(fixture_copy)}",
-            "-o",
-            str(out),
-        ],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
+    proc = start_recording(
+        out, idle_fixture(fixture_copy), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
     )
     wait_for_events(out, 60_000)
     time.sleep(1.0)  # more than one flush interval: everything received is on disk
