@@ -166,6 +166,7 @@ class Davis346:
         self.streaming = False
         self.reader: BulkReader | None = None
         self._reader_stuck = False
+        self.clock_started_us = 0  # host time (Unix us) when the device clock started
         try:
             # Set the configuration only if it differs (setting it again can reset the device).
             try:
@@ -369,8 +370,10 @@ class Davis346:
     def _run(self, aps: bool, imu: bool) -> None:
         self.write_register(*P.MUX_RUN_CHIP, 1)
         self._sleep(0.2)  # biases settle
-        for address in (P.USB_RUN, P.MUX_TIMESTAMP_RUN, P.MUX_RUN):
-            self.write_register(*address, 1)
+        self.write_register(*P.USB_RUN, 1)
+        self.write_register(*P.MUX_TIMESTAMP_RUN, 1)
+        self.clock_started_us = time.time_ns() // 1000  # the device clock starts now
+        self.write_register(*P.MUX_RUN, 1)
         self._sleep(0.05)
         skip = set()
         if not aps:

@@ -19,7 +19,13 @@ from pathlib import Path
 from evcap.acquire import protocol as P
 from evcap.acquire.decoder import Decoded, StreamDecoder
 from evcap.acquire.device import Davis346
-from evcap.errors import DeviceError, DeviceLostError, DiskFullError, SessionWriteError
+from evcap.errors import (
+    DeviceError,
+    DeviceLostError,
+    DiskFullError,
+    OutputExistsError,
+    SessionWriteError,
+)
 from evcap.session import SensorInfo, SessionWriter
 
 STATS_INTERVAL_S = 1.0  # how often the device's dropped-event counters are read
@@ -106,19 +112,16 @@ class Recorder:
         the session) when the camera vanished, and SessionWriteError when the disk failed."""
         o, dev = self.options, self.device
         if self.path.exists() and not o.overwrite:
-            from evcap.errors import OutputExistsError
-
             raise OutputExistsError(f"{self.path} exists; choose another name or pass --force")
         dev.configure(o.biases, o.settings)
         decoder = StreamDecoder(dev.info.geometry)
         reader = dev.start(
             aps=o.aps, imu=o.imu, transfers=o.transfers, transfer_size=o.transfer_size
         )
-        t_offset = time.time_ns() // 1000  # the device clock started (TIMESTAMP_RUN) just now
         try:
             writer = SessionWriter(
                 self.path,
-                self._sensor(t_offset),
+                self._sensor(dev.clock_started_us),
                 attrs=self._attrs(),
                 overwrite=o.overwrite,
                 clock=self._clock,
