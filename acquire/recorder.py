@@ -1,15 +1,22 @@
-"""The recorder: a running DAVIS346 -> a session file, losing nothing the camera sent.
+"""The recorder: a running DAVIS346 -> session files, losing nothing the camera sent.
 
-It decodes what the reader thread received and appends it to the session as it comes (the
-session writer flushes every 0.5 s). Stopping (a stop request, the duration, the end of a
+It decodes what the reader thread received, hands every batch to ``on_batch`` (the monitor's
+live view) and, while a recording is open, appends it to the session (the session writer
+flushes every 0.5 s). ``evcap record`` keeps one recording open for the whole run; the monitor
+opens and closes recordings on request. Stopping (a stop request, the duration, the end of a
 replay fixture) stops the camera, takes in what was still in flight, decodes it and closes the
-session. A lost camera or a failing disk end the recording with what was received; the
-session stays valid either way.
+session. A lost camera or a failing disk end the recording with what was received; the session
+stays valid either way.
+
+Other threads talk to a running recorder only through its request methods (``stop``,
+``start_recording``, ``stop_recording``, ``set_bias``); it reports back through ``on_event``
+with the event dataclasses below.
 """
 
 from __future__ import annotations
 
 import json
+import queue
 import threading
 import time
 from collections.abc import Callable
@@ -23,12 +30,15 @@ from evcap.errors import (
     DeviceError,
     DeviceLostError,
     DiskFullError,
+    EvcapError,
     OutputExistsError,
     SessionWriteError,
 )
+from evcap.events import Events
 from evcap.session import SensorInfo, SessionWriter
+from evcap.streams import Frames, ImuSamples, Triggers
 
-STATS_INTERVAL_S = 1.0  # how often the device's dropped-event counters are read
+STATS_INTERVAL_S = 1.0  # how often the device's counters and the free disk space are read
 
 
 @dataclass
@@ -41,14 +51,16 @@ class RecordOptions:
     transfers: int = 8  # bulk transfers in flight
     transfer_size: int = 8192  # bytes per transfer
     overwrite: bool = False  # replace an existing session file
-    min_free_bytes: int = 200 << 20  # stop (cleanly) when the disk has less free space
+    min_free_bytes: int = 200 << 20  # stop recording (cleanly) below this much free disk space
 
 
 @dataclass
 class RecordResult:
+    """What one recording (one session file) holds, and how it ended."""
+
     path: Path
     # "stopped", "duration", "end of replay", "camera lost", "disk full", "write failed"
-    end_reason: str
+    end_reason: str = "stopped"
     events: int = 0
     frames: int = 0
     imu: int = 0
@@ -56,34 +68,138 @@ class RecordResult:
     device_dropped: dict = field(default_factory=dict)
     decoder: dict = field(default_factory=dict)
     reader: dict = field(default_factory=dict)
-    error: str | None = None  # what went wrong, for "camera lost" and "write failed"
+    error: str | None = None  # what went wrong, for "camera lost", "disk full", "write failed"
+
+
+# -- what the recorder reports (through on_event, from its own thread) -------------------------
+
+
+@dataclass(frozen=True)
+class RecordingStarted:
+    path: Path
+
+
+@dataclass(frozen=True)
+class RecordingStopped:
+    result: RecordResult
+
+
+@dataclass(frozen=True)
+class BiasChanged:
+    name: str
+    code: int
+
+
+@dataclass(frozen=True)
+class CameraLost:
+    reason: str
+
+
+@dataclass(frozen=True)
+class RecorderError:
+    """A request could not be carried out (the recorder goes on)."""
+
+    message: str
+
+
+@dataclass(frozen=True)
+class Stats:
+    """Read every second: the device's dropped-event counters and the free disk space."""
+
+    device_dropped: dict
+    free_bytes: int | None
+
+
+def _shifted(d: Decoded, t0: int) -> Decoded:
+    """The batch with ``t0`` subtracted from its times (a session starts at its t = 0)."""
+    if t0 == 0:
+        return d
+    e = d.events
+    return Decoded(
+        Events._unchecked(e.x, e.y, e.t - t0, e.p, e.width, e.height, e.color_filter),
+        Frames(d.frames.data, d.frames.t - t0, d.frames.exposure_us),
+        ImuSamples(d.imu.t - t0, d.imu.accel, d.imu.gyro, d.imu.temperature),
+        Triggers(d.triggers.t - t0, d.triggers.kind),
+    )
+
+
+class _Recording:
+    """One session being written."""
+
+    def __init__(self, writer: SessionWriter, t0: int) -> None:
+        self.writer = writer
+        self.t0 = t0  # decoder time of the session's t = 0
+        self.result = RecordResult(writer.path)
+
+    def write(self, d: Decoded) -> None:
+        d = _shifted(d, self.t0)
+        self.writer.append_events(d.events)
+        self.writer.append_frames(d.frames)
+        self.writer.append_imu(d.imu)
+        self.writer.append_triggers(d.triggers)
+        r = self.result
+        r.events += len(d.events)
+        r.frames += len(d.frames)
+        r.imu += len(d.imu)
+        r.triggers += len(d.triggers)
 
 
 class Recorder:
-    """Records ``device`` into the session at ``path``. ``on_batch`` (if given) sees every
-    decoded batch; it runs in the recording thread and must be quick."""
+    """Runs ``device`` and records it into session files.
+
+    With ``path``, the recording into it lasts the whole run (``evcap record``): the run ends
+    when it does, and ``run`` raises DeviceLostError or SessionWriteError after closing it
+    when the camera or the disk failed. Without, the run only watches until recordings are
+    asked for with ``start_recording`` (the monitor). ``on_batch`` sees every decoded batch
+    and ``on_event`` every event; both run in the recorder's thread and must be quick.
+    """
 
     def __init__(
         self,
         device: Davis346,
-        path: str | Path,
+        path: str | Path | None = None,
         options: RecordOptions | None = None,
         *,
         on_batch: Callable[[Decoded], None] | None = None,
+        on_event: Callable[[object], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.device = device
-        self.path = Path(path)
+        self.path = Path(path) if path is not None else None
         self.options = options or RecordOptions()
         self.on_batch = on_batch
+        self.on_event = on_event or (lambda event: None)
         self._clock = clock
         self.stop_requested = threading.Event()
-        self.result = RecordResult(self.path, "stopped")
+        self._requests: queue.SimpleQueue[tuple] = queue.SimpleQueue()
+        self._recording: _Recording | None = None
+        self.biases = dict(self.options.biases)  # in force now
+        self.result: RecordResult | None = None  # of the last recording
         self.device_dropped: dict[str, int] = {}
+        self.decoder: StreamDecoder | None = None
+        self.end_reason = "stopped"
+
+    # -- requests from other threads -----------------------------------------------------------
 
     def stop(self) -> None:
-        """Ask the recording to end (thread-safe; also from a signal handler)."""
+        """Ask the run to end (thread-safe; also from a signal handler)."""
         self.stop_requested.set()
+
+    def start_recording(self, path: str | Path) -> None:
+        self._requests.put(("start", Path(path)))
+
+    def stop_recording(self) -> None:
+        self._requests.put(("stop",))
+
+    def set_bias(self, name: str, code: int) -> None:
+        """Write a bias to the camera now (and log it in the open session)."""
+        self._requests.put(("bias", name, code))
+
+    @property
+    def recording(self) -> _Recording | None:
+        return self._recording
+
+    # -- the run -------------------------------------------------------------------------------
 
     def _sensor(self, t_offset_us: int) -> SensorInfo:
         info = self.device.info
@@ -94,77 +210,45 @@ class Recorder:
 
     def _attrs(self) -> dict:
         o = self.options
+        spec = self.device.spec
         return {
             **self.device.info.as_attrs(),
             "device": (
-                f"replay:{self.device.spec.path}"
-                if self.device.spec.kind == "replay"
-                else f"usb:{self.device.info.serial}"
+                f"replay:{spec.path}" if spec.kind == "replay" else f"usb:{self.device.info.serial}"
             ),
-            "biases": json.dumps(o.biases),
+            "biases": json.dumps(self.biases),
             "settings": json.dumps(asdict(o.settings)),
             "aps_enabled": o.aps,
             "imu_enabled": o.imu,
         }
 
-    def run(self) -> RecordResult:
-        """Record until stopped; returns what happened. Raises DeviceLostError (after closing
-        the session) when the camera vanished, and SessionWriteError when the disk failed."""
-        o, dev = self.options, self.device
-        if self.path.exists() and not o.overwrite:
-            raise OutputExistsError(f"{self.path} exists; choose another name or pass --force")
-        dev.configure(o.biases, o.settings)
-        decoder = StreamDecoder(dev.info.geometry)
-        reader = dev.start(
-            aps=o.aps, imu=o.imu, transfers=o.transfers, transfer_size=o.transfer_size
+    def _open(self, path: Path) -> None:
+        """Open a recording into ``path``; its t = 0 is now."""
+        if path.exists() and not self.options.overwrite:
+            raise OutputExistsError(f"{path} exists; choose another name or pass --force")
+        t0 = self.decoder.now_us
+        writer = SessionWriter(
+            path,
+            self._sensor(self.device.clock_started_us + t0),
+            attrs=self._attrs(),
+            overwrite=self.options.overwrite,
+            clock=self._clock,
         )
+        self._recording = _Recording(writer, t0)
+        self.on_event(RecordingStarted(path))
+
+    def _close(self, end_reason: str, error: str | None = None) -> RecordResult:
+        """Close the open recording normally (its final attributes, complete = True)."""
+        rec, self._recording = self._recording, None
+        r = rec.result
+        r.end_reason, r.error = end_reason, error
+        r.decoder = self.decoder.counters
+        r.reader = asdict(self.device.reader.stats)
+        r.device_dropped = dict(self.device_dropped)
         try:
-            writer = SessionWriter(
-                self.path,
-                self._sensor(dev.clock_started_us),
-                attrs=self._attrs(),
-                overwrite=o.overwrite,
-                clock=self._clock,
-            )
-        except BaseException:
-            dev.stop()
-            raise
-        started = self._clock()
-        next_stats = started
-        r = self.result
-        try:
-            while True:
-                self._write(writer, decoder, reader.take(0.05))
-                writer.flush_if_due()
-                now = self._clock()
-                if now >= next_stats and dev.streaming:
-                    self._read_stats()
-                    next_stats = now + STATS_INTERVAL_S
-                    free = writer.free_bytes()
-                    if free is not None and free < o.min_free_bytes:
-                        r.end_reason = "disk full"
-                        r.error = f"only {free / 1e6:.0f} MB left on the disk"
-                        break
-                if reader.lost or reader.failure:
-                    r.end_reason, r.error = "camera lost", reader.lost or repr(reader.failure)
-                    break
-                if self.stop_requested.is_set():
-                    break
-                if o.duration_s is not None and now - started >= o.duration_s:
-                    r.end_reason = "duration"
-                    break
-                if dev.stream_exhausted:
-                    r.end_reason = "end of replay"
-                    break
-            if r.end_reason != "camera lost":
-                self._read_stats()
-            dev.stop()  # the reader takes in what was in flight, then ends
-            self._write(writer, decoder, reader.take())
-            r.decoder, r.reader = decoder.counters, asdict(reader.stats)
-            r.device_dropped = dict(self.device_dropped)
-            writer.close(
+            rec.writer.close(
                 {
-                    "end_reason": r.end_reason,
+                    "end_reason": end_reason,
                     "device_dropped_events": json.dumps(r.device_dropped),
                     "host_dropped_events": r.decoder["dvs_out_of_range"],
                     "decoder_counters": json.dumps(r.decoder),
@@ -173,43 +257,137 @@ class Recorder:
             )
         except SessionWriteError as e:
             r.end_reason, r.error = "write failed", str(e)
-            dev.stop()
-            writer.abort()
             raise
-        except BaseException:
-            dev.stop()
-            writer.abort()
-            raise
-        if r.end_reason == "camera lost":
-            raise DeviceLostError(
-                f"the camera was lost ({r.error}); {self.path} holds everything received "
-                f"before: {r.events:,} events, {r.frames:,} frames"
-            )
-        if r.end_reason == "disk full":
-            raise DiskFullError(
-                f"recording stopped: {r.error}. {self.path} is complete up to now: "
-                f"{r.events:,} events, {r.frames:,} frames"
-            )
+        finally:
+            self.result = r
+            self.on_event(RecordingStopped(r))
         return r
 
-    def _read_stats(self) -> None:
+    def _fail(self, error: SessionWriteError) -> RecordResult:
+        """The open recording's disk failed: keep what was flushed."""
+        rec, self._recording = self._recording, None
+        rec.writer.abort()
+        r = rec.result
+        r.end_reason, r.error = "write failed", str(error)
+        self.result = r
+        self.on_event(RecordingStopped(r))
+        return r
+
+    def _apply_requests(self) -> None:
+        while True:
+            try:
+                request = self._requests.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                if request[0] == "start" and self._recording is None:
+                    self._open(request[1])
+                elif request[0] == "stop" and self._recording is not None:
+                    self._close("stopped")
+                elif request[0] == "bias":
+                    _, name, code = request
+                    self.device.set_bias(name, code)
+                    self.biases[name] = code
+                    if self._recording is not None:
+                        t = self.decoder.now_us - self._recording.t0
+                        self._recording.writer.append_setting(t, f"bias.{name}", code)
+                    self.on_event(BiasChanged(name, code))
+            except EvcapError as e:
+                self.on_event(RecorderError(str(e)))
+
+    def _take(self, chunks: list[bytes]) -> None:
+        if not chunks:
+            return
+        d = self.decoder.decode(b"".join(chunks))
+        if self._recording is not None:
+            try:
+                self._recording.write(d)
+            except SessionWriteError as e:
+                if self.path is not None:
+                    raise
+                self._fail(e)
+        if self.on_batch is not None:
+            self.on_batch(d)
+
+    def _stats(self) -> bool:
+        """Read the device's counters and the free disk space; False if the disk is full."""
         try:
             self.device_dropped = self.device.dropped_counters()
         except DeviceError:
             pass  # a camera being unplugged: the reader reports it
+        rec = self._recording
+        free = rec.writer.free_bytes() if rec is not None else None
+        self.on_event(Stats(dict(self.device_dropped), free))
+        if free is not None and free < self.options.min_free_bytes:
+            self._close("disk full", f"only {free / 1e6:.0f} MB left on the disk")
+            return False
+        return True
 
-    def _write(self, writer: SessionWriter, decoder: StreamDecoder, chunks: list[bytes]) -> None:
-        if not chunks:
-            return
-        d = decoder.decode(b"".join(chunks))
-        writer.append_events(d.events)
-        writer.append_frames(d.frames)
-        writer.append_imu(d.imu)
-        writer.append_triggers(d.triggers)
+    def run(self) -> RecordResult | None:
+        """Run until stopped; returns the last recording's result (None if there was none)."""
+        o, dev = self.options, self.device
+        if self.path is not None and self.path.exists() and not o.overwrite:
+            raise OutputExistsError(f"{self.path} exists; choose another name or pass --force")
+        dev.configure(self.biases, o.settings)
+        self.decoder = StreamDecoder(dev.info.geometry)
+        reader = dev.start(
+            aps=o.aps, imu=o.imu, transfers=o.transfers, transfer_size=o.transfer_size
+        )
+        try:
+            if self.path is not None:
+                self._open(self.path)
+            started = next_stats = self._clock()
+            while True:
+                self._apply_requests()
+                self._take(reader.take(0.05))
+                if self._recording is not None:
+                    self._recording.writer.flush_if_due()
+                now = self._clock()
+                if now >= next_stats and dev.streaming:
+                    next_stats = now + STATS_INTERVAL_S
+                    if not self._stats() and self.path is not None:
+                        self.end_reason = "disk full"
+                        break
+                if reader.lost or reader.failure:
+                    self.end_reason = "camera lost"
+                    break
+                if self.stop_requested.is_set():
+                    break
+                if o.duration_s is not None and now - started >= o.duration_s:
+                    self.end_reason = "duration"
+                    break
+                if dev.stream_exhausted:
+                    self.end_reason = "end of replay"
+                    break
+            lost = reader.lost or (repr(reader.failure) if reader.failure else None)
+            if not lost:
+                self._stats()
+            dev.stop()  # the reader takes in what was in flight, then ends
+            self._take(reader.take())
+            if lost:
+                self.on_event(CameraLost(lost))
+            if self._recording is not None:
+                self._close(self.end_reason, lost)
+        except SessionWriteError as e:
+            dev.stop()
+            if self._recording is not None:
+                self._fail(e)
+            raise
+        except BaseException:
+            dev.stop()
+            if self._recording is not None:
+                self._recording.writer.abort()
+            raise
         r = self.result
-        r.events += len(d.events)
-        r.frames += len(d.frames)
-        r.imu += len(d.imu)
-        r.triggers += len(d.triggers)
-        if self.on_batch is not None:
-            self.on_batch(d)
+        if self.path is not None and r is not None:
+            if r.end_reason == "camera lost":
+                raise DeviceLostError(
+                    f"the camera was lost ({r.error}); {r.path} holds everything received "
+                    f"before: {r.events:,} events, {r.frames:,} frames"
+                )
+            if r.end_reason == "disk full":
+                raise DiskFullError(
+                    f"recording stopped: {r.error}. {r.path} is complete up to now: "
+                    f"{r.events:,} events, {r.frames:,} frames"
+                )
+        return r

@@ -93,8 +93,10 @@ def _status_line(recorder):
         if now - last[0] < 0.5:
             return
         last[0] = now
-        r = recorder.result
-        size = recorder.path.stat().st_size / 1e6 if recorder.path.exists() else 0.0
+        if recorder.recording is None:
+            return
+        r = recorder.recording.result
+        size = r.path.stat().st_size / 1e6 if r.path.exists() else 0.0
         print(
             f"\r{now - started:7.1f} s  {r.events:>13,} events  {r.frames:>6,} frames  "
             f"{r.imu:>8,} IMU  {size:8.1f} MB",

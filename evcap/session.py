@@ -202,6 +202,16 @@ class SessionWriter:
         series("triggers", "t", np.int64, "us")
         series("triggers", "kind", np.uint8, "TriggerKind")
         f["triggers/kind"].attrs["names"] = ",".join(k.name for k in TriggerKind)
+        series("settings_log", "t", np.int64, "us")
+        series("settings_log", "value", np.int64, "register value")
+        log = f.create_dataset(
+            "settings_log/name",
+            shape=(0,),
+            maxshape=(None,),
+            chunks=(256,),
+            dtype=h5py.string_dtype(),
+        )
+        self._ds["settings_log/name"] = log
         f.swmr_mode = True
 
         # Events not yet in a full chunk, per field; the tail chunk is rewritten until full.
@@ -310,6 +320,17 @@ class SessionWriter:
         self._append_rows(
             "imu",
             {"t": imu.t, "accel": imu.accel, "gyro": imu.gyro, "temperature": imu.temperature},
+        )
+
+    def append_setting(self, t: int, name: str, value: int) -> None:
+        """Log a setting changed while recording (e.g. "bias.OnBn", its new 16-bit code)."""
+        self._append_rows(
+            "settings_log",
+            {
+                "t": np.array([t], np.int64),
+                "name": np.array([name], object),
+                "value": np.array([value], np.int64),
+            },
         )
 
     def append_triggers(self, triggers: Triggers) -> None:
@@ -731,6 +752,15 @@ class Session:
         g = self._f["imu"]
         s = self._slice("imu", self.n_imu, t0, t1)
         return ImuSamples(g["t"][s], g["accel"][s], g["gyro"][s], g["temperature"][s])
+
+    def settings_log(self) -> list[tuple[int, str, int]]:
+        """Settings changed while recording: (t, name, value), in time order."""
+        if "settings_log" not in self._f:
+            return []
+        g = self._f["settings_log"]
+        n = min(g["t"].shape[0], g["name"].shape[0], g["value"].shape[0])
+        names = g["name"].asstr()[:n]
+        return list(zip(g["t"][:n].tolist(), list(names), g["value"][:n].tolist(), strict=True))
 
     def triggers(self, t0: int | None = None, t1: int | None = None) -> Triggers:
         g = self._f["triggers"]

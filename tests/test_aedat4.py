@@ -142,7 +142,7 @@ def test_cli_import_and_info(imported, tmp_path):
     assert info["events"] == 78_830 and info["sensor"] == "DAVIS346"
     assert info["duration_s"] == pytest.approx(2.364, abs=0.01)
     assert info["on_fraction"] == pytest.approx(0.523, abs=0.005)
-    assert info["groups"] == ["events", "frames", "imu", "triggers"]
+    assert info["groups"] == ["events", "frames", "imu", "settings_log", "triggers"]
     r = run_cli("info", str(out))
     assert "DAVIS346 00000002" in r.stdout and "78,830" in r.stdout
 
