@@ -67,9 +67,11 @@ class DeviceSpec:
     kind: str  # "usb" or "replay"
     serial: str | None = None  # usb: which camera
     path: Path | None = None  # replay: the fixture folder
+    speed: float | None = None  # replay: multiple of real time (None: as fast as read)
 
     @classmethod
-    def parse(cls, text: str) -> DeviceSpec:
+    def parse(cls, text: str, *, speed: float | None = None) -> DeviceSpec:
+        """``speed``: for a replay device, serve it at this multiple of real time."""
         if text == "usb":
             return cls("usb")
         if text.startswith("usb:") and len(text) > 4:
@@ -78,14 +80,14 @@ class DeviceSpec:
             path = Path(text[7:])
             if not path.is_dir():
                 raise InputError(f"replay fixture {path} is not a folder")
-            return cls("replay", path=path)
+            return cls("replay", path=path, speed=speed)
         raise InputError(f"device {text!r}: expected usb, usb:SERIAL or replay:PATH")
 
     def backend(self):
         if self.kind == "replay":
             from evcap.acquire.replay import ReplayBackend
 
-            return ReplayBackend(self.path)
+            return ReplayBackend(self.path, speed=self.speed)
         return libusb_backend()
 
 

@@ -234,6 +234,49 @@ BIASES: dict[str, Bias] = {
 }
 
 
+def describe_bias(name: str, code: int) -> str:
+    """A bias code in words, e.g. "N 5/255" (coarse/fine), "VDAC 21/6", "SS 1/33"."""
+    kind = BIASES[name].kind
+    if kind == "vdac":
+        return f"VDAC {code & 63}/{code >> 6 & 7}"
+    if kind == "shifted_source":
+        return f"SS {code >> 4 & 63}/{code >> 10 & 63}"
+    sex = "N" if code & 2 else "P"
+    extra = (
+        ("" if code & 1 else " off")
+        + ("" if code & 4 else " cascode")
+        + ("" if code & 8 else " low")
+    )
+    return f"{sex} {code >> 12 & 7}/{code >> 4 & 0xFF}{extra}"
+
+
+def parse_bias(name: str, text: str, current: int) -> int:
+    """A new code for bias ``name`` from what a user typed: two numbers (coarse fine,
+    voltage current, or ref reg; a coarse-fine bias keeps its other flags), or a raw code."""
+    from evcap.errors import InputError
+
+    if name not in BIASES:
+        raise InputError(f"unknown bias {name!r}")
+    parts = text.replace(",", " ").replace("/", " ").split()
+    try:
+        numbers = [int(p, 0) for p in parts]
+    except ValueError:
+        raise InputError(f"{text!r}: expected two numbers (e.g. 5 255) or a code") from None
+    if len(numbers) == 1:
+        if not 0 <= numbers[0] <= 0xFFFF:
+            raise InputError(f"bias code {numbers[0]} is not a 16-bit value")
+        return numbers[0]
+    if len(numbers) != 2:
+        raise InputError(f"{text!r}: expected two numbers (e.g. 5 255) or a code")
+    a, b = numbers
+    bias = BIASES[name]
+    if bias.kind == "vdac":
+        return vdac_code(a, b)
+    if bias.kind == "shifted_source":
+        return shifted_source_code(a, b, mode=current & 3, voltage_level=current >> 2 & 3)
+    return (current & 0xF) | coarse_fine_code(a, b, n_type=bias.n_type) & ~0xF
+
+
 def default_bias_codes() -> dict[str, int]:
     return {name: bias.code(**bias.default) for name, bias in BIASES.items()}
 

@@ -151,7 +151,8 @@ class Recorder:
     when it does, and ``run`` raises DeviceLostError or SessionWriteError after closing it
     when the camera or the disk failed. Without, the run only watches until recordings are
     asked for with ``start_recording`` (the monitor). ``on_batch`` sees every decoded batch
-    and ``on_event`` every event; both run in the recorder's thread and must be quick.
+    and ``on_event`` every event; ``on_tick`` is called at every turn of the loop, data or not.
+    All run in the recorder's thread and must be quick.
     """
 
     def __init__(
@@ -162,6 +163,7 @@ class Recorder:
         *,
         on_batch: Callable[[Decoded], None] | None = None,
         on_event: Callable[[object], None] | None = None,
+        on_tick: Callable[[], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.device = device
@@ -169,6 +171,7 @@ class Recorder:
         self.options = options or RecordOptions()
         self.on_batch = on_batch
         self.on_event = on_event or (lambda event: None)
+        self.on_tick = on_tick  # called every turn of the loop (at least 20 times a second)
         self._clock = clock
         self.stop_requested = threading.Event()
         self._requests: queue.SimpleQueue[tuple] = queue.SimpleQueue()
@@ -339,7 +342,9 @@ class Recorder:
             started = next_stats = self._clock()
             while True:
                 self._apply_requests()
-                self._take(reader.take(0.05))
+                self._take(reader.take(0.02))
+                if self.on_tick is not None:
+                    self.on_tick()
                 if self._recording is not None:
                     self._recording.writer.flush_if_due()
                 now = self._clock()

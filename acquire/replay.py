@@ -97,6 +97,25 @@ class Fixture:
         return cls(path, usb_desc, registers, (path / "bulk.bin").read_bytes(), transfers, faults)
 
 
+def stream_times(bulk: bytes) -> np.ndarray:
+    """The stream's time (us, host-continuous) at each of its words: the last timestamp
+    before it, with wraps counted and timestamp resets continuing from the time they came."""
+    w = np.frombuffer(bulk, "<u2", count=len(bulk) // 2).astype(np.int64)
+    is_ts = (w & 0x8000) != 0
+    code = (w >> 12) & 7
+    is_wrap = ~is_ts & (code == 7)
+    is_reset = ~is_ts & (code == 0) & ((w & 0xFFF) == 1)
+    times = np.zeros(w.size, np.int64)
+    base = 0
+    bounds = [0, *np.flatnonzero(is_reset).tolist(), w.size]
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):  # one segment per reset
+        wrap = np.cumsum(np.where(is_wrap[a:b], (w[a:b] & 0xFFF) * 0x8000, 0))
+        value = np.where(is_ts[a:b], wrap + (w[a:b] & 0x7FFF), np.where(is_wrap[a:b], wrap, 0))
+        times[a:b] = base + np.maximum.accumulate(value) if b > a else 0
+        base = int(times[b - 1]) if b > a else base
+    return times
+
+
 def _usb_error(code: int, err: int, text: str) -> usb.core.USBError:
     if code == _LIBUSB_ERROR_TIMEOUT:
         return usb.core.USBTimeoutError(text, code, err)
@@ -113,8 +132,16 @@ class ReplayBackend(usb.backend.IBackend):
     """The emulated camera. One device; thread-safe (bulk reads and control transfers may come
     from different threads, as with libusb)."""
 
-    def __init__(self, fixture: str | Path | Fixture) -> None:
+    def __init__(self, fixture: str | Path | Fixture, speed: float | None = None) -> None:
+        """``speed``: serve the stream at this multiple of its own time (1 = as the camera
+        sent it, by the timestamps in it); None: as fast as the host reads."""
         self.fixture = fixture if isinstance(fixture, Fixture) else Fixture.load(fixture)
+        if speed is not None and speed <= 0:
+            raise InputError(f"replay speed must be positive, got {speed}")
+        self.speed = speed
+        self._times = stream_times(self.fixture.bulk) if speed is not None else np.zeros(0)
+        self._wall_start: float | None = None
+        self._t_start = 0
         self.registers: dict[tuple[int, int], int] = {
             **P.DAVIS346_READ_ONLY,
             **self.fixture.registers,
@@ -306,12 +333,27 @@ class ReplayBackend(usb.backend.IBackend):
     def bulk_read(self, dev_handle, ep, intf, buff, timeout):
         self._check_present()
         try:
-            return self._bulk_read(ep, buff)
+            return self._bulk_read(ep, buff, timeout)
         except usb.core.USBTimeoutError:
             time.sleep(min(IDLE_WAIT_S, timeout / 1000))
             raise
 
-    def _bulk_read(self, ep, buff) -> int:
+    def _wait_for(self, end: int, timeout_ms: int) -> None:
+        """With a speed, hold the bytes up to ``end`` until their time has come."""
+        if self.speed is None:
+            return
+        t = self._times[(end - 1) // 2] if self._times.size else 0
+        now = time.monotonic()
+        if self._wall_start is None:
+            self._wall_start, self._t_start = now, t
+        wait = self._wall_start + (t - self._t_start) / 1e6 / self.speed - now
+        if wait > timeout_ms / 1000:
+            time.sleep(timeout_ms / 1000)
+            raise _usb_error(_LIBUSB_ERROR_TIMEOUT, errno.ETIMEDOUT, "Operation timed out")
+        if wait > 0:
+            time.sleep(wait)
+
+    def _bulk_read(self, ep, buff, timeout_ms) -> int:
         with self._lock:
             if ep != P.DATA_ENDPOINT:
                 raise _usb_error(_LIBUSB_ERROR_TIMEOUT, errno.ETIMEDOUT, "Operation timed out")
@@ -343,6 +385,11 @@ class ReplayBackend(usb.backend.IBackend):
             end = min(self._pos + size, self._pos + len(buff), len(bulk))
             if self._faults:  # stop at the next fault (it fires on the next read)
                 end = min(end, self._faults[0].at_byte)
+            try:
+                self._wait_for(end, timeout_ms)
+            except usb.core.USBTimeoutError:
+                self._transfer -= 1  # this transfer comes again on the next read
+                raise
             n = end - self._pos
             buff[:n] = array.array("B", bulk[self._pos : end])
             self._pos = end

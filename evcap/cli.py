@@ -10,6 +10,7 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from evcap import __version__
 from evcap.errors import EvcapError, InputError
@@ -108,42 +109,91 @@ def _status_line(recorder):
     return show
 
 
-def _cmd_record(args: argparse.Namespace) -> int:
-    import signal
-
+def _record_options(args: argparse.Namespace):
     from evcap.acquire.bias_file import load_bias_file
-    from evcap.acquire.device import Davis346
-    from evcap.acquire.recorder import Recorder, RecordOptions
+    from evcap.acquire.recorder import RecordOptions
 
     options = RecordOptions(
-        duration_s=args.duration, aps=not args.no_aps, imu=not args.no_imu, overwrite=args.force
+        duration_s=getattr(args, "duration", None),
+        aps=not args.no_aps,
+        imu=not args.no_imu,
+        overwrite=getattr(args, "force", False),
     )
     if args.biases:
         options.biases, options.settings = load_bias_file(args.biases)
+    return options
+
+
+def _run_app(app, recorder) -> None:
+    """Run the monitor app; SIGTERM stops it as q does. A capture error is raised after."""
+    import signal
+
+    signal.signal(signal.SIGTERM, lambda signum, frame: recorder.stop())
+    app.run()
+    if app.capture_error is not None:
+        raise app.capture_error
+
+
+def _cmd_record(args: argparse.Namespace) -> int:
+    import signal
+
+    from evcap.acquire.device import Davis346
+    from evcap.acquire.recorder import Recorder
+
+    options = _record_options(args)
+    live_view = not args.no_tui and sys.stdout.isatty() and sys.stdin.isatty()
     with Davis346.open(args.device) as camera:
         recorder = Recorder(camera, args.output, options)
-        if sys.stderr.isatty():
-            recorder.on_batch = _status_line(recorder)
+        if live_view:
+            from evcap.tui import make_app
 
-        def stop(signum, frame):
-            if recorder.stop_requested.is_set():  # a second Ctrl-C: stop now
-                raise KeyboardInterrupt
-            recorder.stop()
+            app = make_app(recorder, record_mode=True, output_dir=Path(args.output).parent)
+            _run_app(app, recorder)
+            r = recorder.result
+        else:
 
-        signal.signal(signal.SIGINT, stop)
-        signal.signal(signal.SIGTERM, stop)
-        print(
-            f"recording {camera.info.model} {camera.info.serial} into {args.output} (Ctrl-C stops)",
-            file=sys.stderr,
-        )
-        r = recorder.run()
-    if sys.stderr.isatty():
-        print(file=sys.stderr)  # end the status line
+            def stop(signum, frame):
+                if recorder.stop_requested.is_set():  # a second Ctrl-C: stop now
+                    raise KeyboardInterrupt
+                recorder.stop()
+
+            signal.signal(signal.SIGINT, stop)
+            signal.signal(signal.SIGTERM, stop)
+            print(
+                f"recording {camera.info.model} {camera.info.serial} into {args.output} "
+                "(Ctrl-C stops)",
+                file=sys.stderr,
+            )
+            if sys.stderr.isatty():
+                recorder.on_batch = _status_line(recorder)
+            r = recorder.run()
+            if sys.stderr.isatty():
+                print(file=sys.stderr)  # end the status line
     dropped = sum(r.device_dropped.values())
     print(
         f"{args.output}: {r.events:,} events, {r.frames:,} frames, {r.imu:,} IMU samples, "
         f"{r.triggers:,} triggers ({r.end_reason}; dropped on the device: {dropped:,})"
     )
+    return 0
+
+
+def _cmd_monitor(args: argparse.Namespace) -> int:
+    from evcap.acquire.device import Davis346, DeviceSpec
+    from evcap.acquire.recorder import Recorder
+    from evcap.tui import make_app
+
+    options = _record_options(args)
+    output_dir = Path(args.output_dir)
+    if not output_dir.is_dir():
+        raise InputError(f"{output_dir} is not a folder")
+    spec = DeviceSpec.parse(args.device, speed=args.speed)
+    with Davis346.open(spec) as camera:
+        recorder = Recorder(camera, None, options)
+        app = make_app(recorder, output_dir=output_dir)
+        _run_app(app, recorder)
+    if recorder.result is not None:
+        r = recorder.result
+        print(f"last recording: {r.path}: {r.events:,} events ({r.end_reason})")
     return 0
 
 
@@ -206,9 +256,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--biases", metavar="FILE", help="biases and settings (TOML) over the defaults")
     p.add_argument("--no-aps", action="store_true", help="do not record APS frames")
     p.add_argument("--no-imu", action="store_true", help="do not record IMU samples")
-    p.add_argument("--no-tui", action="store_true", help="no live view (the default for now)")
+    p.add_argument(
+        "--no-tui",
+        action="store_true",
+        help="no live view (there is none either when output is not a terminal)",
+    )
     p.add_argument("-f", "--force", action="store_true", help="overwrite the output file")
     p.set_defaults(run=_cmd_record)
+
+    p = sub.add_parser(
+        "monitor",
+        help="watch a camera live in the terminal; r records",
+        description="Watch a camera live: event rates, events, frames, IMU, biases (editable); "
+        "r starts and stops a recording into a new session file.",
+    )
+    p.add_argument("--device", default="usb", help=device_help)
+    p.add_argument("--output-dir", default=".", help="where recordings go (default: here)")
+    p.add_argument("--biases", metavar="FILE", help="biases and settings (TOML) over the defaults")
+    p.add_argument("--no-aps", action="store_true", help="do not read APS frames")
+    p.add_argument("--no-imu", action="store_true", help="do not read IMU samples")
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=1.0,
+        help="replay devices: play at this multiple of real time (default 1)",
+    )
+    p.set_defaults(run=_cmd_monitor)
     return parser
 
 
