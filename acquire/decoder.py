@@ -403,6 +403,16 @@ class StreamDecoder:
         """The decoder's clock: the time of the last timestamp seen (host-continuous)."""
         return int(self._S[_NOW])
 
+    @property
+    def pending_since_us(self) -> int:
+        """The earliest time data still to come can carry: the start of the frame being read
+        (frames are stamped with their exposure start), or the clock."""
+        S = self._S
+        if S[_FRAME_ACTIVE] and not S[_APS_IGNORE]:
+            start = S[_EXP_START] if S[_EXP_START] >= 0 else S[_FRAME_T]
+            return int(min(start, S[_NOW]))
+        return int(S[_NOW])
+
     def decode(self, data: bytes | bytearray | memoryview) -> Decoded:
         """Decode the next bytes of the stream."""
         if self._odd:

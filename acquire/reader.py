@@ -52,15 +52,21 @@ class BulkReader:
         self._thread.join(timeout_s)
         return not self._thread.is_alive()
 
-    def take(self, timeout_s: float = 0.0) -> list[bytes]:
-        """All chunks received so far (waiting up to ``timeout_s`` for the first)."""
+    def take(self, timeout_s: float = 0.0, max_bytes: int = 16 << 20) -> list[bytes]:
+        """The chunks received so far, up to about ``max_bytes`` (waiting up to ``timeout_s``
+        for the first)."""
         chunks = []
+        size = 0
         try:
-            chunks.append(
+            chunk = (
                 self._chunks.get(timeout=timeout_s) if timeout_s > 0 else self._chunks.get_nowait()
             )
             while True:
-                chunks.append(self._chunks.get_nowait())
+                chunks.append(chunk)
+                size += len(chunk)
+                if size >= max_bytes:
+                    break
+                chunk = self._chunks.get_nowait()
         except queue.Empty:
             pass
         return chunks

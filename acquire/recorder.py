@@ -229,7 +229,7 @@ class Recorder:
         """Open a recording into ``path``; its t = 0 is now."""
         if path.exists() and not self.options.overwrite:
             raise OutputExistsError(f"{path} exists; choose another name or pass --force")
-        t0 = self.decoder.now_us
+        t0 = self.decoder.pending_since_us  # a frame being read keeps its exposure start
         writer = SessionWriter(
             path,
             self._sensor(self.device.clock_started_us + t0),
@@ -333,6 +333,7 @@ class Recorder:
             raise OutputExistsError(f"{self.path} exists; choose another name or pass --force")
         dev.configure(self.biases, o.settings)
         self.decoder = StreamDecoder(dev.info.geometry)
+        self.decoder.decode(b"")  # compiles the decoder (or loads it) before data flows
         reader = dev.start(
             aps=o.aps, imu=o.imu, transfers=o.transfers, transfer_size=o.transfer_size
         )
@@ -342,7 +343,7 @@ class Recorder:
             started = next_stats = self._clock()
             while True:
                 self._apply_requests()
-                self._take(reader.take(0.02))
+                self._take(reader.take(0.01))
                 if self.on_tick is not None:
                     self.on_tick()
                 if self._recording is not None:
@@ -367,8 +368,11 @@ class Recorder:
             lost = reader.lost or (repr(reader.failure) if reader.failure else None)
             if not lost:
                 self._stats()
+            self._apply_requests()  # those made as the loop ended
             dev.stop()  # the reader takes in what was in flight, then ends
-            self._take(reader.take())
+            while chunks := reader.take():
+                self._take(chunks)
+            self._apply_requests()
             if lost:
                 self.on_event(CameraLost(lost))
             if self._recording is not None:

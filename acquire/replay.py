@@ -385,11 +385,15 @@ class ReplayBackend(usb.backend.IBackend):
             end = min(self._pos + size, self._pos + len(buff), len(bulk))
             if self._faults:  # stop at the next fault (it fires on the next read)
                 end = min(end, self._faults[0].at_byte)
-            try:
-                self._wait_for(end, timeout_ms)
-            except usb.core.USBTimeoutError:
+        # Wait for the data's time (with a speed) without holding the lock: control requests
+        # from other threads go on meanwhile. Only this thread moves the stream on.
+        try:
+            self._wait_for(end, timeout_ms)
+        except usb.core.USBTimeoutError:
+            with self._lock:
                 self._transfer -= 1  # this transfer comes again on the next read
-                raise
+            raise
+        with self._lock:
             n = end - self._pos
             buff[:n] = array.array("B", bulk[self._pos : end])
             self._pos = end

@@ -37,6 +37,7 @@ from evcap.tui.screens import BiasScreen, HelpScreen
 from evcap.tui.widgets import Panel, PixelView, RateChart, si
 
 DISK_WARNING_BYTES = 1 << 30  # warn below 1 GB free while recording
+PANEL_PERIOD_S = 0.25  # the text panels are redrawn 4 times a second, the images at each update
 
 
 def _free_space(folder: Path) -> int | None:
@@ -89,7 +90,7 @@ class MonitorApp(App):
         self.live = LiveView(g.width, g.height, info.color_filter)
         self._snapshot_period = 1.0 / snapshot_hz
         self._clock = clock
-        self._last_snapshot = float("-inf")
+        self._next_snapshot = float("-inf")
         self._thread = threading.Thread(target=self._capture, name="evcap-capture", daemon=True)
         self.capture_error: BaseException | None = None  # what ended the capture, if anything
         self.ended = False
@@ -101,6 +102,9 @@ class MonitorApp(App):
         self.biases = dict(recorder.biases)
         self.recording_path: Path | None = None
         self.last_result = None  # of the last recording that stopped
+        self._frame_shown: int | None = None
+        self._panels_drawn = float("-inf")
+        self._last_update: LiveUpdate | None = None
         recorder.on_batch = self._on_batch
         recorder.on_event = self._on_event
         recorder.on_tick = self._on_tick
@@ -137,8 +141,8 @@ class MonitorApp(App):
 
     def _on_tick(self) -> None:
         now = self._clock()
-        if now - self._last_snapshot >= self._snapshot_period:
-            self._last_snapshot = now
+        if now >= self._next_snapshot:  # on a fixed schedule, so the rate does not drift
+            self._next_snapshot = max(self._next_snapshot + self._snapshot_period, now)
             self.post_message(self._live_update())
 
     def _on_event(self, event: object) -> None:
@@ -166,9 +170,7 @@ class MonitorApp(App):
     def on_mount(self) -> None:
         info = self.recorder.device.info
         self.sub_title = f"{info.model} {info.serial}"
-        self._show_device(None)
-        self._show_recording(None)
-        self._show_warnings(None)
+        self._show_panels()
         self._thread.start()
 
     def _show_device(self, snapshot) -> None:
@@ -187,7 +189,7 @@ class MonitorApp(App):
         if snapshot is not None:
             t = snapshot.totals
             lines.append(f"{t['events']:,} ev {t['frames']:,} fr")
-        self.query_one("#device", Panel).update("\n".join(lines))
+        self.query_one("#device", Panel).show("\n".join(lines))
 
     def _show_recording(self, update: LiveUpdate | None) -> None:
         status = update.recording if update is not None else None
@@ -208,7 +210,7 @@ class MonitorApp(App):
         lines.append(f"dropped dev {self.device_dropped:,} host {dropped:,}")
         if self.free_bytes is not None:
             lines.append(f"free {si(self.free_bytes, 'B')}")
-        self.query_one("#recording", Panel).update("\n".join(lines))
+        self.query_one("#recording", Panel).show("\n".join(lines))
 
     def _show_warnings(self, snapshot) -> None:
         warnings = []
@@ -221,17 +223,27 @@ class MonitorApp(App):
             warnings.append(f"hot pixels: 0.1 % of the pixels make {share:.0f} % of the events")
         if self.ended and not self.camera_lost:
             warnings.append("the capture has ended")
-        self.query_one("#warnings", Panel).update("\n".join(warnings) or "none")
+        self.query_one("#warnings", Panel).show("\n".join(warnings) or "none")
 
     def on_live_update(self, message: LiveUpdate) -> None:
         s = message.snapshot
         self.query_one("#events", PixelView).show(s.image)
-        if s.frame is not None:
+        if s.frame is not None and s.frame_t_us != self._frame_shown:
+            self._frame_shown = s.frame_t_us
             self.query_one("#frame", PixelView).show(s.frame)
         self.query_one(RateChart).update_rates(s)
-        self._show_device(s)
-        self._show_recording(message)
-        self._show_warnings(s)
+        self._last_update = message
+        now = self._clock()
+        if now - self._panels_drawn >= PANEL_PERIOD_S:
+            self._panels_drawn = now
+            self._show_panels()
+
+    def _show_panels(self) -> None:
+        update = self._last_update
+        snapshot = update.snapshot if update is not None else None
+        self._show_device(snapshot)
+        self._show_recording(update)
+        self._show_warnings(snapshot)
 
     def on_capture_event(self, message: CaptureEvent) -> None:
         event = message.event
@@ -249,7 +261,7 @@ class MonitorApp(App):
                 self.screen.show_bias(event.name, event.code)
         elif isinstance(event, CameraLost):
             self.camera_lost = event.reason
-            self._show_warnings(None)
+            self._show_panels()
         elif isinstance(event, Stats):
             self.device_dropped = sum(event.device_dropped.values())
             self.free_bytes = event.free_bytes
@@ -260,7 +272,7 @@ class MonitorApp(App):
 
     def on_capture_ended(self, message: CaptureEnded) -> None:
         self.ended = True
-        self._show_warnings(None)
+        self._show_panels()
         if message.error and not self.camera_lost:
             self.notify(message.error, severity="error", timeout=30)
         # evcap record ends with its recording, unless something went wrong: then the

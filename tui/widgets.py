@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 from rich.color import Color
-from rich.console import Console, ConsoleOptions, RenderResult
 from rich.segment import Segment
 from rich.style import Style
 from textual.app import ComposeResult
 from textual.containers import Horizontal, Vertical
+from textual.strip import Strip
 from textual.widget import Widget
 from textual.widgets import Label, Sparkline, Static
 
@@ -35,31 +35,10 @@ def fit(image: np.ndarray, width: int, height: int, pool: str) -> np.ndarray:
     return out.astype(np.uint8)
 
 
-class HalfBlocks:
-    """A rich renderable: an RGB image, two pixels per character cell (upper half block)."""
-
-    def __init__(self, rgb: np.ndarray) -> None:
-        self.rgb = rgb
-
-    def __rich_console__(self, console: Console, options: ConsoleOptions) -> RenderResult:
-        styles: dict[tuple, Style] = {}
-        rgb = self.rgb
-        if rgb.shape[0] % 2:
-            rgb = np.concatenate([rgb, np.zeros_like(rgb[:1])])
-        for top, bottom in zip(rgb[0::2].tolist(), rgb[1::2].tolist(), strict=True):
-            for a, b in zip(top, bottom, strict=True):
-                key = (*a, *b)
-                style = styles.get(key)
-                if style is None:
-                    style = styles[key] = Style(
-                        color=Color.from_rgb(*a), bgcolor=Color.from_rgb(*b)
-                    )
-                yield Segment("▀", style)
-            yield Segment.line()
-
-
 class PixelView(Widget):
-    """An image that fills the widget, drawn with half blocks."""
+    """An RGB image that fills the widget with its aspect, two pixels per character cell
+    (the upper half block: foreground on top, background below). Drawn line by line, with
+    runs of equal cells merged, so a mostly dark event image costs little to draw."""
 
     DEFAULT_CSS = "PixelView { height: 1fr; }"
 
@@ -68,16 +47,59 @@ class PixelView(Widget):
         self.pool = pool
         self.image: np.ndarray | None = None
         self.updates = 0  # how many images it was given (the refresh rate is measured on it)
+        self._cells: np.ndarray | None = None  # [rows, cols] int64: top RGB << 24 | bottom RGB
+        self._styles: dict[int, Style] = {}
 
     def show(self, image: np.ndarray | None) -> None:
         self.image = image
         self.updates += 1
+        self._cells = None
         self.refresh()
 
-    def render(self) -> HalfBlocks | str:
+    def on_resize(self) -> None:
+        self._cells = None
+
+    def _fitted_cells(self) -> np.ndarray:
+        if self._cells is None:
+            rgb = fit(self.image, self.size.width, 2 * self.size.height, self.pool)
+            if rgb.shape[0] % 2:
+                rgb = np.concatenate([rgb, np.zeros_like(rgb[:1])])
+            packed = (
+                rgb[..., 0].astype(np.int64) << 16 | rgb[..., 1].astype(np.int64) << 8 | rgb[..., 2]
+            )
+            self._cells = packed[0::2] << 24 | packed[1::2]
+        return self._cells
+
+    def _style(self, key: int) -> Style:
+        style = self._styles.get(key)
+        if style is None:
+            if len(self._styles) > 8192:
+                self._styles.clear()
+            top, bottom = key >> 24, key & 0xFFFFFF
+            style = self._styles[key] = Style(
+                color=Color.from_rgb(top >> 16, top >> 8 & 255, top & 255),
+                bgcolor=Color.from_rgb(bottom >> 16, bottom >> 8 & 255, bottom & 255),
+            )
+        return style
+
+    def render_line(self, y: int) -> Strip:
+        width = self.size.width
         if self.image is None:
-            return "waiting for data..."
-        return HalfBlocks(fit(self.image, self.size.width, 2 * self.size.height, self.pool))
+            text = "waiting for data..." if y == 0 else ""
+            return Strip([Segment(text.ljust(width)[:width])], width)
+        cells = self._fitted_cells()
+        if y >= cells.shape[0]:
+            return Strip.blank(width)
+        row = cells[y]
+        starts = np.flatnonzero(np.diff(row, prepend=-1))
+        ends = np.append(starts[1:], row.size)
+        segments = [
+            Segment("▀" * int(e - s), self._style(int(row[s])))
+            for s, e in zip(starts, ends, strict=True)
+        ]
+        if row.size < width:
+            segments.append(Segment(" " * (width - row.size)))
+        return Strip(segments, width)
 
 
 def si(value: float, unit: str) -> str:
@@ -120,15 +142,22 @@ class RateChart(Vertical):
             peak = float(data.max()) if data.size else 0.0
             self.query_one(f"#rate-{name}", Sparkline).data = data.tolist()
             self.query_one(f"#rate-label-{name}", Label).update(
-                f"{name:>5} {si(now, 'ev/s'):>12} ▲{si(peak, '')}"
+                f"{name:>5} {si(now, 'ev/s'):>12} ▲{si(peak, '').replace(' ', '')}"
             )
 
 
 class Panel(Static):
-    """A titled text panel."""
+    """A titled text panel of a fixed size."""
 
     DEFAULT_CSS = "Panel { border: round $primary 40%; padding: 0 1; height: 100%; }"
 
     def __init__(self, title: str, **kwargs) -> None:
         super().__init__("", **kwargs)
         self.border_title = title
+        self.text = ""
+
+    def show(self, text: str) -> None:
+        """Show ``text``; nothing to do if it is what is shown."""
+        if text != self.text:
+            self.text = text
+            self.update(text)

@@ -396,3 +396,46 @@ def test_real_sample_replay_matches_the_aedat_import(tmp_path, sample_aedat4):
         np.testing.assert_array_equal(ea.t, er.t)  # both relative to the earliest timestamp
         np.testing.assert_allclose(a.imu().accel, r.imu().accel, rtol=1e-6)
         np.testing.assert_array_equal(a.frames().data[29], r.frames().data[0])
+
+
+def test_recordings_on_request_hold_contiguous_parts_of_the_stream(tmp_path, fixture_copy):
+    """The monitor's way: recordings opened and closed while the camera runs, here in the
+    middle of frames (a frame exposed before a recording starts keeps its time)."""
+    exp = np.load(FIXTURES / "color-scene" / "expected.npz")
+    paths = [tmp_path / "a.h5", tmp_path / "b.h5"]
+    events: list = []
+    bias = P.coarse_fine_code(3, 9, n_type=True)
+    # paced, so that batches are small and the requests fall between them
+    spec = DeviceSpec("replay", path=idle_fixture(fixture_copy), speed=4.0)
+    with Davis346.open(spec) as cam:
+        recorder = Recorder(cam, None, on_event=events.append)
+        plan = [
+            (5_000, lambda: recorder.start_recording(paths[0])),
+            (20_000, recorder.stop_recording),
+            (30_000, lambda: recorder.start_recording(paths[1])),
+            (45_000, lambda: recorder.set_bias("OffBn", bias)),
+            (60_000, recorder.stop),
+        ]
+
+        def on_tick():
+            if plan and recorder.decoder.counters["events"] >= plan[0][0]:
+                plan.pop(0)[1]()
+
+        recorder.on_tick = on_tick
+        result = recorder.run()
+        clock_start = cam.clock_started_us
+    assert result.path == paths[1]
+    stopped = [e.result for e in events if type(e).__name__ == "RecordingStopped"]
+    assert [r.end_reason for r in stopped] == ["stopped", "stopped"]
+    for path in paths:
+        with Session.open(path) as s:
+            assert s.complete
+            shift = s.sensor.t_offset_us - clock_start
+            t = s.events().t + shift
+            assert t.size > 5000
+            start = int(np.searchsorted(exp["events_t"], t[0]))
+            np.testing.assert_array_equal(t, exp["events_t"][start : start + len(t)])
+            frames_t = s.frames().t + shift
+            assert set(frames_t.tolist()) <= set(exp["frames_t"].tolist())
+    with Session.open(paths[1]) as s:
+        assert s.settings_log()[0][1:] == ("bias.OffBn", bias)
