@@ -61,14 +61,15 @@ class MonitorApp(App):
     #images > Vertical { width: 1fr; border: round $primary 40%; }
     #panels { height: 8; }
     #panels > Panel { width: 1fr; }
-    #warnings { color: $error; }
+    #warnings.alarm { color: $error; text-style: bold; }
     """
     BINDINGS = [
         Binding("r", "record", "Record"),
         Binding("b", "biases", "Biases"),
         Binding("c", "color_by", "Color by"),
         Binding("question_mark", "help", "Help"),
-        Binding("q,ctrl+c", "quit_monitor", "Quit", priority=True),
+        Binding("q", "quit_monitor", "Quit", priority=True),
+        Binding("ctrl+c", "quit_monitor", "Quit", priority=True, show=False),
     ]
 
     def __init__(
@@ -215,15 +216,17 @@ class MonitorApp(App):
     def _show_warnings(self, snapshot) -> None:
         warnings = []
         if self.camera_lost:
-            warnings.append(f"CAMERA LOST: {self.camera_lost}")
+            warnings.append(f"CAMERA LOST\n  {self.camera_lost}")
         if self.free_bytes is not None and self.free_bytes < DISK_WARNING_BYTES:
-            warnings.append(f"disk almost full: {si(self.free_bytes, 'B')} left")
+            warnings.append(f"disk almost full\n  {si(self.free_bytes, 'B')} free")
         if snapshot is not None and snapshot.hot_pixels_dominate:
             share = 100 * snapshot.hot_pixel_share
-            warnings.append(f"hot pixels: 0.1 % of the pixels make {share:.0f} % of the events")
+            warnings.append(f"hot pixels: 0.1 % of the\n  pixels make {share:.0f} % of events")
         if self.ended and not self.camera_lost:
             warnings.append("the capture has ended")
-        self.query_one("#warnings", Panel).show("\n".join(warnings) or "none")
+        panel = self.query_one("#warnings", Panel)
+        panel.set_class(bool(warnings), "alarm")
+        panel.show("\n".join(warnings) or "none")
 
     def on_live_update(self, message: LiveUpdate) -> None:
         s = message.snapshot

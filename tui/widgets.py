@@ -89,7 +89,7 @@ class PixelView(Widget):
             return Strip([Segment(text.ljust(width)[:width])], width)
         cells = self._fitted_cells()
         if y >= cells.shape[0]:
-            return Strip.blank(width)
+            return Strip([Segment(" " * width, self._style(0))], width)
         row = cells[y]
         starts = np.flatnonzero(np.diff(row, prepend=-1))
         ends = np.append(starts[1:], row.size)
@@ -97,8 +97,14 @@ class PixelView(Widget):
             Segment("▀" * int(e - s), self._style(int(row[s])))
             for s, e in zip(starts, ends, strict=True)
         ]
-        if row.size < width:
-            segments.append(Segment(" " * (width - row.size)))
+        margin = max(0, width - row.size)  # the image is centred on black
+        if margin:
+            black = self._style(0)
+            segments = [
+                Segment(" " * (margin // 2), black),
+                *segments,
+                Segment(" " * (margin - margin // 2), black),
+            ]
         return Strip(segments, width)
 
 

@@ -247,3 +247,65 @@ def test_main_screen_snapshot(size):
     if os.environ.get("EVCAP_UPDATE_SNAPSHOTS") or not path.exists():
         path.write_text(text)
     assert text == path.read_text(), f"the main screen changed: compare with {path}"
+
+
+def test_a_slow_screen_drops_drawing_not_data(tmp_path, monkeypatch):
+    """The capture never waits for the UI: with a screen that takes 0.3 s per update, every
+    event is still recorded, and the updates not drawn in time are replaced by newer ones."""
+    from evcap.tui.app import MonitorApp
+
+    drawn = []
+    original = MonitorApp.on_live_update
+
+    def slow(self, message):
+        import time
+
+        time.sleep(0.3)
+        drawn.append(message.snapshot.totals["events"])
+        original(self, message)
+
+    monkeypatch.setattr(MonitorApp, "on_live_update", slow)
+    out = tmp_path / "s.h5"
+    cam, app = monitor("color-scene", speed=2.0, tmp_path=tmp_path, record_to=out)
+    posted = []
+    tick = app._on_tick
+
+    def counting_tick():
+        before = app._next_snapshot
+        tick()
+        if app._next_snapshot != before:
+            posted.append(1)
+
+    app.recorder.on_tick = counting_tick
+
+    async def script():
+        async with app.run_test() as pilot:
+            await wait_for(pilot, lambda: not app.is_running, timeout_s=30)
+
+    with cam:
+        run(script)
+    with Session.open(out) as s:
+        assert s.n_events == 60_000 and s.complete
+    assert len(drawn) < len(posted) / 2  # most updates were replaced before being drawn
+    assert drawn[-1] == 60_000  # the last one, with everything, was drawn
+
+
+def test_disk_almost_full_warning(tmp_path):
+    cam = Davis346.open(DeviceSpec.parse(f"replay:{idle_copy(tmp_path)}", speed=1.0))
+    app = make_app(
+        Recorder(cam, None),
+        output_dir=tmp_path,
+        snapshot_hz=2.0,
+        free_space=lambda folder: 500_000_000,
+    )
+
+    async def script():
+        async with app.run_test(size=(100, 32)) as pilot:
+            await wait_for(pilot, lambda: app.free_bytes is not None)
+            await pilot.pause(0.6)
+            text = screen_text(app)
+            assert "disk almost full" in text and "500.00 MB free" in text
+            await pilot.press("q")
+
+    with cam:
+        run(script)
