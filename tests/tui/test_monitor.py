@@ -231,22 +231,27 @@ def test_help_screen(tmp_path):
 
 @pytest.mark.parametrize("size", [(80, 24), (120, 40)])
 def test_main_screen_snapshot(size):
-    """The main screen at the end of the color scene, as text (update with
-    EVCAP_UPDATE_SNAPSHOTS=1)."""
+    """The main screen at the end of the color scene: its text, and for 80 x 24 also the SVG
+    screenshot with the images' colors (update both with EVCAP_UPDATE_SNAPSHOTS=1)."""
     cam, app = monitor("color-scene")
 
     async def script():
         async with app.run_test(size=size) as pilot:
             await wait_for(pilot, lambda: app.ended)
             await pilot.pause(0.3)
-            return screen_text(app)
+            return screen_text(app), app.export_screenshot()
 
     with cam:
-        text = asyncio.run(script())
-    path = SNAPSHOTS / f"main-{size[0]}x{size[1]}.txt"
-    if os.environ.get("EVCAP_UPDATE_SNAPSHOTS") or not path.exists():
-        path.write_text(text)
-    assert text == path.read_text(), f"the main screen changed: compare with {path}"
+        text, svg = asyncio.run(script())
+    name = f"main-{size[0]}x{size[1]}"
+    shots = [(SNAPSHOTS / f"{name}.txt", text)]
+    if size == (80, 24):
+        shots.append((SNAPSHOTS / f"{name}.svg", svg))
+    for path, content in shots:
+        if os.environ.get("EVCAP_UPDATE_SNAPSHOTS"):
+            path.write_text(content)
+        assert path.exists(), f"no snapshot {path}: make it with EVCAP_UPDATE_SNAPSHOTS=1"
+        assert content == path.read_text(), f"the main screen changed: compare with {path}"
 
 
 def test_a_slow_screen_drops_drawing_not_data(tmp_path, monkeypatch):
