@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from evcap import __version__
-from evcap.errors import EvcapError, InputError
+from evcap.errors import EvcapError, InputError, OutputExistsError
 
 
 def _cmd_import(args: argparse.Namespace) -> int:
@@ -141,6 +141,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
     from evcap.acquire.recorder import Recorder
 
     options = _record_options(args)
+    if Path(args.output).exists() and not args.force:
+        raise OutputExistsError(f"{args.output} exists; choose another name or pass --force")
     live_view = not args.no_tui and sys.stdout.isatty() and sys.stdin.isatty()
     with Davis346.open(args.device) as camera:
         recorder = Recorder(camera, args.output, options)

@@ -314,3 +314,55 @@ def test_disk_almost_full_warning(tmp_path):
 
     with cam:
         run(script)
+
+
+def test_evcap_record_shows_the_monitor_on_a_terminal(tmp_path):
+    """`evcap record` in a terminal runs the monitor and ends with the recording."""
+    import pty
+    import subprocess
+    import sys
+    import threading
+
+    out = tmp_path / "s.h5"
+    master, slave = pty.openpty()
+    env = {**os.environ, "TERM": "xterm-256color", "COLUMNS": "100", "LINES": "30"}
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "evcap",
+            "record",
+            "--device",
+            f"replay:{FIXTURES / 'color-scene'}",
+            "-o",
+            str(out),
+        ],
+        stdin=slave,
+        stdout=slave,
+        stderr=slave,
+        env=env,
+        close_fds=True,
+    )
+    os.close(slave)
+    screen = bytearray()
+
+    def read():
+        while True:
+            try:
+                data = os.read(master, 65536)
+            except OSError:
+                return
+            if not data:
+                return
+            screen.extend(data)
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    assert proc.wait(timeout=60) == 0
+    reader.join(2)
+    os.close(master)
+    text = screen.decode("utf-8", "replace")
+    assert "evcap monitor" in text and "events (last 33 ms)" in text
+    assert "60,000 events, 15 frames" in text  # the summary after the app
+    with Session.open(out) as s:
+        assert s.complete and s.n_events == 60_000
