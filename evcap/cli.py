@@ -199,6 +199,17 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
     return 0
 
 
+DEVICE_HELP = "usb (the first camera), usb:SERIAL, or replay:PATH (a hardware-replay fixture)"
+
+
+def _capture_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of a running camera, shared by record and monitor."""
+    p.add_argument("--device", default="usb", help=DEVICE_HELP)
+    p.add_argument("--biases", metavar="FILE", help="biases and settings (TOML) over the defaults")
+    p.add_argument("--no-aps", action="store_true", help="without APS frames")
+    p.add_argument("--no-imu", action="store_true", help="without IMU samples")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="evcap",
@@ -232,13 +243,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.set_defaults(run=_cmd_info)
 
-    device_help = "usb (the first camera), usb:SERIAL, or replay:PATH (a hardware-replay fixture)"
     p = sub.add_parser(
         "devices",
         help="list the connected cameras: serial, firmware, color filter",
         description="List the connected DAVIS346 cameras.",
     )
-    p.add_argument("--device", default="usb", help=device_help)
+    p.add_argument("--device", default="usb", help=DEVICE_HELP)
     p.add_argument(
         "--udev",
         action="store_true",
@@ -249,15 +259,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "record",
         help="record a camera into a session file",
-        description="Record a DAVIS346 into a session file until Ctrl-C, the duration, or the "
+        description="Record a DAVIS346 into a session file until q or Ctrl-C, the duration, or the "
         "end of a replay fixture.",
     )
     p.add_argument("-o", "--output", required=True, help="the session file to write (.h5)")
-    p.add_argument("--device", default="usb", help=device_help)
+    _capture_arguments(p)
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
-    p.add_argument("--biases", metavar="FILE", help="biases and settings (TOML) over the defaults")
-    p.add_argument("--no-aps", action="store_true", help="do not record APS frames")
-    p.add_argument("--no-imu", action="store_true", help="do not record IMU samples")
     p.add_argument(
         "--no-tui",
         action="store_true",
@@ -272,11 +279,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Watch a camera live: event rates, events, frames, IMU, biases (editable); "
         "r starts and stops a recording into a new session file.",
     )
-    p.add_argument("--device", default="usb", help=device_help)
+    _capture_arguments(p)
     p.add_argument("--output-dir", default=".", help="where recordings go (default: here)")
-    p.add_argument("--biases", metavar="FILE", help="biases and settings (TOML) over the defaults")
-    p.add_argument("--no-aps", action="store_true", help="do not read APS frames")
-    p.add_argument("--no-imu", action="store_true", help="do not read IMU samples")
     p.add_argument(
         "--speed",
         type=float,
