@@ -467,6 +467,44 @@ class SessionWriter:
             self.abort()
 
 
+def write_group(
+    path: str | os.PathLike,
+    name: str,
+    datasets: dict[str, np.ndarray],
+    attrs: dict | None = None,
+    *,
+    replace: bool = False,
+) -> None:
+    """Add the group /``name`` to a closed session (how calibration, poses and a simulator's
+    ground truth are stored; docs/session-format.md). Arrays of 3 or more dimensions are
+    chunked one item of their first axis at a time, so that readers load single frames."""
+    path = Path(path)
+    try:
+        f = h5py.File(path, "r+")
+    except OSError as e:
+        if "already open for write" in str(e):
+            raise SessionFormatError(
+                f"{path} is being recorded, or its recorder did not close it: groups are added "
+                "to closed sessions only"
+            ) from None
+        raise SessionFormatError(f"{path} cannot be opened for writing: {e}") from None
+    with f:
+        if name in f:
+            if not replace:
+                raise SessionFormatError(f"{path} already has /{name}")
+            del f[name]
+        group = f.create_group(name)
+        for key, value in datasets.items():
+            a = np.asarray(value)
+            options = {}
+            if a.size > 256 and a.dtype.kind in "biuf":
+                options = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
+                options["chunks"] = (1, *a.shape[1:]) if a.ndim >= 3 else True
+            group.create_dataset(key, data=a, **options)
+        for key, value in (attrs or {}).items():
+            group.attrs[key] = _attr_value(value)
+
+
 # -- reading ---------------------------------------------------------------------------------
 
 _REQUIRED = {
@@ -691,6 +729,12 @@ class Session:
     @property
     def groups(self) -> list[str]:
         return sorted(self._f.keys())
+
+    def group(self, name: str) -> h5py.Group:
+        """A group added by a later step (calibration, poses, gt), read lazily."""
+        if name not in self._f:
+            raise SessionFormatError(f"{self.path} has no /{name} group")
+        return self._f[name]
 
     def event_index(self, t_us: int) -> int:
         """Index of the first event at or after ``t_us``, reading only a millisecond of events."""

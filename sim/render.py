@@ -1,0 +1,355 @@
+"""The ground-truth renderer: ray-cast surfaces shaded with Lambert + GGX (metallic 0) under
+the environment, the sun and point lights.
+
+What a pixel sees: the first surface along its ray (through the distorted camera model), or
+the environment. Diffuse light from the environment is baked per vertex (so it costs nothing
+per frame) through a fixed set of directions; with ``lighting.shadows`` those directions are
+tested for occlusion (visibility), and with ``lighting.indirect`` the occluded ones bring the
+diffuse light of the surface they hit (one bounce: color bleeding). Environment specular uses
+GGX-prefiltered maps (split sum), scaled by the baked visibility when shadows are on; the sun
+and point lights are exact per pixel, with a shadow ray each when shadows are on. Surfaces are
+two-sided (a back face is shaded with its normal flipped).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from evcap.sim.camera import Camera
+from evcap.sim.lighting import (
+    F0,
+    Environment,
+    dfg_table,
+    fibonacci_sphere,
+    ggx_specular,
+    read_image_linear,
+)
+from evcap.sim.meshes import build_mesh
+from evcap.sim.raytrace import Bvh
+from evcap.sim.scene import Material, Scene
+
+ROUGHNESS_LEVELS = np.array([0.05, 0.15, 0.3, 0.45, 0.6, 0.8, 1.0])
+SHADOW_BIAS = 1e-4  # scene units: shadow rays start this far off the surface
+
+
+@dataclass
+class RenderResult:
+    """What the renderer gives for a set of pixels (flat indices into H x W)."""
+
+    radiance: np.ndarray  # [P, 3] linear RGB
+    depth: np.ndarray  # [P] z in the camera frame; 0 where no surface
+    normal: np.ndarray  # [P, 3] in the camera frame (OpenCV axes); 0 where no surface
+    base_color: np.ndarray  # [P, 3]; 0 where no surface
+    roughness: np.ndarray  # [P]; 0 where no surface
+    hit: np.ndarray  # [P] bool
+
+
+def _noise(uv: np.ndarray, scale: float, seed: int) -> np.ndarray:
+    """Smooth value noise in 0..1 (3 octaves), periodic in the unit square."""
+    rng = np.random.default_rng(seed)
+    total, amp, norm = np.zeros(len(uv)), 1.0, 0.0
+    for octave in range(3):
+        n = max(2, int(scale * 2**octave))
+        lattice = rng.random((n, n))
+        x, y = uv[:, 0] % 1 * n, uv[:, 1] % 1 * n
+        x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+        fx, fy = x - x0, y - y0
+        fx, fy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)
+        x0, y0, x1, y1 = x0 % n, y0 % n, (x0 + 1) % n, (y0 + 1) % n
+        v = (lattice[y0, x0] * (1 - fx) + lattice[y0, x1] * fx) * (1 - fy) + (
+            lattice[y1, x0] * (1 - fx) + lattice[y1, x1] * fx
+        ) * fy
+        total += amp * v
+        norm += amp
+        amp *= 0.5
+    return total / norm
+
+
+class Surfaces:
+    """The materials of the scene: base color and roughness at surface points."""
+
+    def __init__(
+        self, materials: list[Material], boards: list[dict | None], object_ids, seed: int
+    ) -> None:
+        self.materials = materials
+        self.seed = seed
+        self.textures = [read_image_linear(m.texture) if m.texture else None for m in materials]
+        self.roughness = np.array([m.roughness for m in materials])
+        self.board_textures = {}
+        for i, board in enumerate(boards):
+            if board is not None:
+                self.board_textures[i] = charuco_texture(board)
+
+    def base_color(self, material: np.ndarray, obj: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(material), 3))
+        for m in np.unique(material):
+            sel = material == m
+            mat = self.materials[m]
+            color = np.broadcast_to(np.asarray(mat.base_color), (int(sel.sum()), 3)).copy()
+            if self.textures[m] is not None:
+                color = _bilinear(self.textures[m], uv[sel])
+            elif mat.procedural is not None:
+                color = _procedural(mat.procedural, uv[sel], color, self.seed + int(m))
+            out[sel] = color
+        for o, texture in self.board_textures.items():
+            sel = obj == o
+            if sel.any():
+                out[sel] = _bilinear(texture, uv[sel], wrap=False)
+        return out
+
+
+def _bilinear(img: np.ndarray, uv: np.ndarray, wrap: bool = True) -> np.ndarray:
+    h, w = img.shape[:2]
+    x, y = uv[:, 0] * w - 0.5, uv[:, 1] * h - 0.5
+    if not wrap:
+        x, y = np.clip(x, 0, w - 1), np.clip(y, 0, h - 1)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    x0, y0, x1, y1 = x0 % w, y0 % h, (x0 + 1) % w, (y0 + 1) % h
+    return (img[y0, x0] * (1 - fx) + img[y0, x1] * fx) * (1 - fy) + (
+        img[y1, x0] * (1 - fx) + img[y1, x1] * fx
+    ) * fy
+
+
+def _procedural(p: dict, uv: np.ndarray, base: np.ndarray, seed: int) -> np.ndarray:
+    colors = np.asarray(p.get("colors", [base[0].tolist(), [0.1, 0.1, 0.1]]), np.float64)
+    scale = float(p.get("scale", 8.0))
+    kind = p["kind"]
+    if kind == "checker":
+        k = ((np.floor(uv[:, 0] * scale) + np.floor(uv[:, 1] * scale)) % 2).astype(int)
+        return colors[k % len(colors)]
+    if kind == "stripes":
+        k = (np.floor(uv[:, 0] * scale) % len(colors)).astype(int)
+        return colors[k]
+    t = _noise(uv, scale, seed)[:, None]  # noise: a blend between the first two colors
+    return colors[0] * (1 - t) + colors[1] * t
+
+
+def charuco_texture(board: dict, pixels_per_square: int = 64) -> np.ndarray:
+    """The board's image (linear albedo: black 0.03, white 0.85), margins included."""
+    import cv2
+
+    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, board["dictionary"]))
+    cb = cv2.aruco.CharucoBoard(
+        (board["squares_x"], board["squares_y"]),
+        board["square_length"],
+        board["marker_length"],
+        dictionary,
+    )
+    scale = pixels_per_square / board["square_length"]
+    size = (int(round(board["width"] * scale)), int(round(board["height"] * scale)))
+    margin = int(round(board["margin"] * scale))
+    img = cb.generateImage(size, marginSize=margin, borderBits=1).astype(np.float64) / 255
+    albedo = 0.03 + 0.82 * img
+    return np.repeat(albedo[..., None], 3, axis=2)
+
+
+class Renderer:
+    """Renders the scene for the camera at any pose."""
+
+    def __init__(self, scene: Scene, *, progress=None) -> None:
+        self.scene = scene
+        self.mesh, self.material_names, self.boards = build_mesh(scene)
+        m = self.mesh
+        self.bvh = Bvh(m.vertices, m.faces)
+        self.env = Environment(scene.lighting)
+        self.camera = Camera(scene.camera)
+        self.surfaces = Surfaces(
+            [scene.materials[n] for n in self.material_names], self.boards, m.object_id, scene.seed
+        )
+        self.lights = [
+            (
+                np.asarray(p["position"], np.float64),
+                np.broadcast_to(np.asarray(p.get("intensity", 1.0), np.float64), (3,)),
+            )
+            for p in scene.lighting.points
+        ]
+        self.prefiltered = self.env.prefilter(ROUGHNESS_LEVELS)
+        self.dfg = dfg_table()
+        self._bake(progress)
+
+    # -- per-vertex diffuse light ----------------------------------------------------------------
+
+    def _bake(self, progress) -> None:
+        """Environment irradiance (with visibility and one bounce when asked) per vertex."""
+        m, light = self.mesh, self.scene.lighting
+        k = light.samples
+        dirs = fibonacci_sphere(k)
+        n_vert = len(m.vertices)
+        cos = np.clip(m.normals @ dirs.T, 0, None)  # [V, K]
+        visible = None
+        if light.shadows or light.indirect:
+            visible = np.ones((n_vert, k), np.float32)
+            hits = []
+            for a in range(0, n_vert, 2048):
+                b = min(a + 2048, n_vert)
+                o = np.repeat(m.vertices[a:b] + m.normals[a:b] * SHADOW_BIAS, k, axis=0)
+                d = np.tile(dirs, (b - a, 1))
+                t, face, u, v = self.bvh.closest(o, d)
+                blocked = (face >= 0).reshape(b - a, k) & (cos[a:b] > 0)
+                visible[a:b][blocked] = 0.0
+                hits.append((face.reshape(b - a, k), u.reshape(b - a, k), v.reshape(b - a, k)))
+                if progress:
+                    progress(b, n_vert)
+        env = self.env.irradiance(m.normals, k, visible if light.shadows else None)
+        self.vertex_visibility = (
+            (cos * visible).sum(1) / np.maximum(cos.sum(1), 1e-12)
+            if light.shadows
+            else np.ones(n_vert)
+        )
+        self.vertex_irradiance = env
+        if light.indirect:
+            direct = env + self._point_irradiance(m.vertices, m.normals, shadows=light.shadows)
+            bounce = np.zeros((n_vert, 3))
+            for chunk, (face, u, v) in zip(range(0, n_vert, 2048), hits, strict=True):
+                sel = face >= 0
+                f, uu, vv = face[sel], u[sel], v[sel]
+                w = np.stack([1 - uu - vv, uu, vv], 1)
+                tri = m.faces[f]
+                e_hit = (direct[tri] * w[..., None]).sum(1)
+                uv = (m.uvs[tri] * w[..., None]).sum(1)
+                albedo = self.surfaces.base_color(m.material[f], m.object_id[f], uv)
+                radiance = albedo / np.pi * e_hit
+                rows = np.nonzero(sel)[0] + chunk
+                weights = cos[rows, np.nonzero(sel)[1]] * (4 * np.pi / k)
+                np.add.at(bounce, rows, radiance * weights[:, None])
+            self.vertex_irradiance = env + bounce
+
+    def _point_irradiance(self, x: np.ndarray, n: np.ndarray, shadows: bool) -> np.ndarray:
+        """Irradiance from the sun and point lights at points x with normals n."""
+        out = np.zeros((len(x), 3))
+        for direction, irradiance, distance in self._light_dirs(x):
+            ndl = np.clip((n * direction).sum(1), 0, None)
+            lit = ndl > 0
+            if shadows and lit.any():
+                lit[lit] = ~self.bvh.occluded(
+                    x[lit] + n[lit] * SHADOW_BIAS, direction[lit], distance[lit] - 2 * SHADOW_BIAS
+                )
+            out += irradiance * (ndl * lit)[:, None]
+        return out
+
+    def _light_dirs(self, x: np.ndarray):
+        """(unit direction to the light [N, 3], irradiance at normal incidence [N, 3],
+        distance [N]) for the sun and each point light."""
+        if self.env.sun_irradiance.any():
+            d = np.broadcast_to(self.env.sun_direction, x.shape)
+            yield d, self.env.sun_irradiance * self.env.scale, np.full(len(x), np.inf)
+        for position, intensity in self.lights:
+            v = position - x
+            dist = np.linalg.norm(v, axis=1)
+            yield (
+                v / np.maximum(dist, 1e-12)[:, None],
+                intensity / np.maximum(dist, 1e-12)[:, None] ** 2,
+                dist,
+            )
+
+    # -- rendering ---------------------------------------------------------------------------------
+
+    def _prefiltered(self, r: np.ndarray, roughness: np.ndarray) -> np.ndarray:
+        levels, h, w, _ = self.prefiltered.shape
+        d = r @ self.env.rotation
+        u = (np.arctan2(d[:, 1], d[:, 0]) / (2 * np.pi) + 0.5) * w - 0.5
+        v = np.clip((0.5 - np.arcsin(np.clip(d[:, 2], -1, 1)) / np.pi) * h - 0.5, 0, h - 1)
+        level = np.interp(roughness, ROUGHNESS_LEVELS, np.arange(levels))
+        l0 = np.floor(level).astype(int)
+        l1 = np.minimum(l0 + 1, levels - 1)
+        fl = (level - l0)[:, None]
+        x0, y0 = np.floor(u).astype(int), np.floor(v).astype(int)
+        fx, fy = (u - x0)[:, None], (v - y0)[:, None]
+        x0, x1, y1 = x0 % w, (x0 + 1) % w, np.minimum(y0 + 1, h - 1)
+        out = 0
+        for lv, wl in ((l0, 1 - fl), (l1, fl)):
+            p = self.prefiltered
+            out = out + wl * (
+                (p[lv, y0, x0] * (1 - fx) + p[lv, y0, x1] * fx) * (1 - fy)
+                + (p[lv, y1, x0] * (1 - fx) + p[lv, y1, x1] * fx) * fy
+            )
+        return out
+
+    def _dfg(self, ndv: np.ndarray, roughness: np.ndarray) -> np.ndarray:
+        size = self.dfg.shape[0]
+        i = np.clip((ndv * size - 0.5).astype(int), 0, size - 1)
+        j = np.clip((roughness * size - 0.5).astype(int), 0, size - 1)
+        return self.dfg[i, j]
+
+    def render(self, T_world_cam: np.ndarray, pixels: np.ndarray | None = None) -> RenderResult:
+        """Render the pixels (flat indices; None: all) for the camera at ``T_world_cam``."""
+        rays = self.camera.rays() if pixels is None else self.camera.rays()[pixels]
+        rot, origin = T_world_cam[:3, :3], T_world_cam[:3, 3]
+        result = self.render_rays(np.broadcast_to(origin, rays.shape), rays @ rot.T, rays[:, 2])
+        result.normal = result.normal @ rot  # into the camera frame
+        return result
+
+    def render_rays(
+        self, origins: np.ndarray, dirs: np.ndarray, ray_z: np.ndarray | None = None
+    ) -> RenderResult:
+        """Render rays from their own origins (each pixel may come from a camera at another
+        time): the simulator's refinements. Normals stay in the world frame; depth is the
+        distance along the ray times ``ray_z`` (the ray's z in its camera frame), if given."""
+        t, face, u, v = self.bvh.closest(origins, dirs)
+        origin = origins[face >= 0] if len(origins) else origins
+        n_px = len(dirs)
+        hit = face >= 0
+        radiance = np.zeros((n_px, 3))
+        normal = np.zeros((n_px, 3))
+        base = np.zeros((n_px, 3))
+        rough = np.zeros(n_px)
+        depth = np.zeros(n_px)
+        if (~hit).any():
+            radiance[~hit] = self.env.background(dirs[~hit])
+        if hit.any():
+            m, f = self.mesh, face[hit]
+            w = np.stack([1 - u[hit] - v[hit], u[hit], v[hit]], 1)
+            tri = m.faces[f]
+            x = origin + dirs[hit] * t[hit, None]
+            n = (m.normals[tri] * w[..., None]).sum(1)
+            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+            view = -dirs[hit]
+            flip = (n * view).sum(1) < 0  # two-sided
+            n[flip] = -n[flip]
+            uv = (m.uvs[tri] * w[..., None]).sum(1)
+            albedo = self.surfaces.base_color(m.material[f], m.object_id[f], uv)
+            r = self.surfaces.roughness[m.material[f]]
+            irradiance = (self.vertex_irradiance[tri] * w[..., None]).sum(1)
+            visibility = (self.vertex_visibility[tri] * w).sum(1)
+            shadows = self.scene.lighting.shadows
+            irradiance = irradiance + self._point_irradiance(x, n, shadows)
+            color = albedo / np.pi * irradiance
+            ndv = np.clip((n * view).sum(1), 1e-4, 1)
+            reflected = 2 * ndv[:, None] * n - view
+            ab = self._dfg(ndv, r)
+            color += (
+                self._prefiltered(reflected, r)
+                * (F0 * ab[:, 0] + ab[:, 1])[:, None]
+                * visibility[:, None]
+            )
+            for direction, irr, distance in self._light_dirs(x):
+                spec = ggx_specular(n, view, direction, r)
+                if shadows:
+                    lit = spec > 0
+                    spec[lit] *= ~self.bvh.occluded(
+                        x[lit] + n[lit] * SHADOW_BIAS,
+                        direction[lit],
+                        distance[lit] - 2 * SHADOW_BIAS,
+                    )
+                color += spec[:, None] * irr
+            radiance[hit] = color
+            normal[hit] = n
+            base[hit] = albedo
+            rough[hit] = r
+            depth[hit] = t[hit] * (ray_z[hit] if ray_z is not None else 1.0)
+        return RenderResult(radiance, depth, normal, base, rough, hit)
+
+    def render_full(self, T_world_cam: np.ndarray) -> dict[str, np.ndarray]:
+        """All pixels, as images: radiance [H, W, 3], depth, normal, base_color, roughness."""
+        h, w = self.camera.height, self.camera.width
+        r = self.render(T_world_cam)
+        return {
+            "radiance": r.radiance.reshape(h, w, 3).astype(np.float32),
+            "depth": r.depth.reshape(h, w).astype(np.float32),
+            "normal": r.normal.reshape(h, w, 3).astype(np.float32),
+            "base_color": r.base_color.reshape(h, w, 3).astype(np.float32),
+            "roughness": r.roughness.reshape(h, w).astype(np.float32),
+        }

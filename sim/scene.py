@@ -1,0 +1,401 @@
+"""Scenes for the simulator, described in TOML (the format is documented in sim/scenes/README.md).
+
+``load_scene(path)`` reads and checks a scene file and returns a ``Scene``: what is in it
+(objects and their materials), how it is lit, the camera and its path, the sensor and the
+effects it should simulate. Every sensor effect, shadows and indirect light are off unless the
+scene asks for them. Errors name the file and the key.
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from evcap.errors import InputError, InputNotFoundError
+from evcap.events import check_color_filter
+
+CALIBRATIONS = (
+    Path(os.environ.get("EVCAP_SHARED", Path(__file__).resolve().parents[2] / "shared"))
+    / "data"
+    / "davis346-calibrations"
+)
+
+
+@dataclass(frozen=True)
+class Material:
+    """Dielectric (metallic 0): a base color and a GGX roughness."""
+
+    base_color: tuple[float, float, float] = (0.7, 0.7, 0.7)  # linear RGB, 0..1
+    roughness: float = 0.5  # GGX roughness (perceptual: alpha = roughness^2), 0.02..1
+    texture: Path | None = None  # an image (sRGB) mapped by the object's UVs, over base_color
+    procedural: dict | None = None  # {"kind": "checker"|"stripes"|"noise", ...} (see README)
+
+
+@dataclass(frozen=True)
+class SceneObject:
+    kind: str  # "sphere", "box", "plane", "mesh", "charuco"
+    material: str  # a key of Scene.materials
+    params: dict  # the kind's parameters (center, radius, size, path, ...)
+
+
+@dataclass(frozen=True)
+class Lighting:
+    environment: str = "sky"  # "sky", or a path to an equirectangular image (.hdr/.exr/.png)
+    sky: dict = field(default_factory=dict)  # the analytic sky's colors and sun
+    intensity: float = 1.0  # multiplies the environment
+    rotation_deg: float = 0.0  # of the environment about the world's up axis
+    points: tuple[dict, ...] = ()  # point lights: position, intensity (RGB radiant intensity)
+    shadows: bool = False  # visibility of the environment and the lights
+    indirect: bool = False  # one bounce of diffuse light between surfaces (color bleeding)
+    samples: int = 256  # directions for the baked diffuse light (shadows, indirect)
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion_model: str = "none"  # "none", "radtan" (plumb_bob), "equidistant"
+    distortion: tuple[float, ...] = ()
+    source: str = "scene"  # where the intrinsics come from
+
+
+@dataclass(frozen=True)
+class TrajectorySpec:
+    kind: str  # "orbit", "handheld", "linear", "static"
+    duration_s: float
+    params: dict
+
+
+# Sensor effects and their parameters (each off unless listed in [sensor.effects]).
+EFFECTS = {
+    "threshold_spread": {"sigma": float},  # per-pixel, per-polarity threshold: N(C, sigma)
+    "background_activity": {"rate_hz": float},  # leak events per pixel per second (ON)
+    "shot_noise": {"rate_hz": float},  # random ON and OFF events per pixel per second
+    "hot_pixels": {"count": int, "rate_hz": float},  # pixels firing ON events at rate_hz
+    "refractory": {"period_us": int},  # events closer than this after one are dropped
+    "bandwidth": {"cutoff_hz": float},  # first-order low-pass of the log photocurrent
+    "timestamp_jitter": {"sigma_us": float},  # Gaussian jitter of event times
+    "dropped": {"probability": float},  # each event is lost with this probability
+}
+
+
+@dataclass(frozen=True)
+class SensorSpec:
+    color_filter: str = "RGBG"
+    threshold_on: float = 0.2  # contrast threshold C of ON events (log units)
+    threshold_off: float = 0.2
+    dark_level: float = 1e-3  # added to the radiance before the log (the dark current)
+    effects: dict = field(default_factory=dict)  # name -> parameters, see EFFECTS
+
+
+@dataclass(frozen=True)
+class ApsSpec:
+    fps: float = 25.0
+    exposure_us: int = 4000
+    gain: float = 200.0  # ADC counts per unit of radiance per millisecond of exposure
+    read_noise: float = 2.0  # ADC counts
+    shot_noise: bool = True
+
+
+@dataclass(frozen=True)
+class ImuSpec:
+    rate_hz: float = 1000.0
+    gyro_noise: float = 0.0  # rad/s, white noise standard deviation
+    accel_noise: float = 0.0  # m/s^2
+
+
+@dataclass(frozen=True)
+class GroundTruthSpec:
+    fps: float = 20.0  # ground-truth frames per second
+    test_views: int = 8  # held-out views off the trajectory
+
+
+@dataclass(frozen=True)
+class Scene:
+    path: Path
+    name: str
+    seed: int
+    units_per_meter: float  # scene units per meter (for the IMU's accelerations)
+    objects: tuple[SceneObject, ...]
+    materials: dict[str, Material]
+    lighting: Lighting
+    camera: CameraSpec
+    trajectory: TrajectorySpec
+    sensor: SensorSpec
+    aps: ApsSpec | None
+    imu: ImuSpec | None
+    gt: GroundTruthSpec
+    max_step_px: float = 0.5  # the simulator's sampling: largest image motion between renders
+    max_step_log: float = 0.25  # ...and largest log-radiance change, in thresholds
+
+
+class _Table:
+    """A TOML table being read: typed look-ups whose errors name the file and the key."""
+
+    def __init__(self, data: dict, where: str) -> None:
+        self.data, self.where, self.used = data, where, set()
+
+    def get(self, key: str, kind, default=None, required: bool = False):
+        self.used.add(key)
+        if key not in self.data:
+            if required:
+                raise InputError(f"{self.where}: missing {key}")
+            return default
+        value = self.data[key]
+        if kind is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if kind == "vec3":
+            if (
+                not isinstance(value, list)
+                or len(value) != 3
+                or not all(isinstance(v, int | float) for v in value)
+            ):
+                raise InputError(f"{self.where}: {key} must be 3 numbers, got {value!r}")
+            return tuple(float(v) for v in value)
+        if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+            raise InputError(
+                f"{self.where}: {key} must be a {getattr(kind, '__name__', kind)}, got {value!r}"
+            )
+        return value
+
+    def table(self, key: str) -> _Table:
+        value = self.get(key, dict, {})
+        return _Table(value, f"{self.where} [{key}]")
+
+    def done(self) -> None:
+        unknown = set(self.data) - self.used
+        if unknown:
+            raise InputError(f"{self.where}: unknown key(s) {', '.join(sorted(unknown))}")
+
+
+def _positive(where: str, key: str, value: float) -> float:
+    if not value > 0:
+        raise InputError(f"{where}: {key} must be positive, got {value}")
+    return value
+
+
+def _resolve(base: Path, value: str, what: str) -> Path:
+    path = Path(value) if Path(value).is_absolute() else base / value
+    if not path.exists():
+        raise InputNotFoundError(f"{what} {value!r} not found (looked at {path})")
+    return path
+
+
+def _camera(t: _Table, base: Path) -> CameraSpec:
+    calibration = t.get("calibration", str)
+    width = t.get("width", int, 346)
+    height = t.get("height", int, 260)
+    if calibration is not None:
+        from evcap.sim.camera import load_calibration
+
+        path = Path(calibration)
+        if not path.is_absolute():
+            path = (
+                base / calibration if (base / calibration).exists() else CALIBRATIONS / calibration
+            )
+        if not path.exists():
+            raise InputNotFoundError(
+                f"{t.where}: calibration {calibration!r} not found next to the scene or in "
+                f"{CALIBRATIONS}"
+            )
+        spec = load_calibration(path)
+        t.done()
+        return spec
+    fx = _positive(t.where, "fx", t.get("fx", float, 250.0))
+    spec = CameraSpec(
+        width=width,
+        height=height,
+        fx=fx,
+        fy=_positive(t.where, "fy", t.get("fy", float, fx)),
+        cx=t.get("cx", float, (width - 1) / 2),
+        cy=t.get("cy", float, (height - 1) / 2),
+        distortion_model=t.get("distortion_model", str, "none"),
+        distortion=tuple(float(v) for v in t.get("distortion", list, [])),
+    )
+    if spec.distortion_model not in ("none", "radtan", "equidistant"):
+        raise InputError(f"{t.where}: distortion_model must be none, radtan or equidistant")
+    t.done()
+    return spec
+
+
+def _material(name: str, t: _Table, base: Path) -> Material:
+    texture = t.get("texture", str)
+    procedural = t.get("procedural", dict)
+    if procedural is not None and procedural.get("kind") not in ("checker", "stripes", "noise"):
+        raise InputError(f"{t.where}: procedural.kind must be checker, stripes or noise")
+    m = Material(
+        base_color=t.get("base_color", "vec3", (0.7, 0.7, 0.7)),
+        roughness=t.get("roughness", float, 0.5),
+        texture=_resolve(base, texture, f"{t.where}: texture") if texture else None,
+        procedural=procedural,
+    )
+    if not 0.02 <= m.roughness <= 1.0:
+        raise InputError(f"{t.where}: roughness must be in 0.02..1, got {m.roughness}")
+    if not all(0.0 <= c <= 1.0 for c in m.base_color):
+        raise InputError(f"{t.where}: base_color must be in 0..1 (linear RGB)")
+    t.done()
+    return m
+
+
+OBJECT_KINDS = ("sphere", "box", "plane", "mesh", "charuco")
+
+
+def load_scene(path: str | os.PathLike) -> Scene:
+    """Read and check a scene file."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputNotFoundError(f"{path}: no such scene file")
+    try:
+        doc = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise InputError(f"{path} is not valid TOML: {e}") from None
+    base = path.parent
+    top = _Table(doc, str(path))
+    scene = top.table("scene")
+    materials = {
+        name: _material(name, _Table(value, f"{path} [materials.{name}]"), base)
+        for name, value in top.get("materials", dict, {}).items()
+    }
+    objects = []
+    for i, value in enumerate(top.get("objects", list, [])):
+        where = f"{path} [[objects]] #{i + 1}"
+        if not isinstance(value, dict):
+            raise InputError(f"{where}: must be a table")
+        kind = value.get("type")
+        if kind not in OBJECT_KINDS:
+            raise InputError(f"{where}: type must be one of {', '.join(OBJECT_KINDS)}")
+        material = value.get("material", "default")
+        if material not in materials:
+            if material != "default":
+                raise InputError(f"{where}: unknown material {material!r}")
+            materials.setdefault("default", Material())
+        params = {k: v for k, v in value.items() if k not in ("type", "material")}
+        if kind == "mesh":
+            if "path" not in params:
+                raise InputError(f"{where}: a mesh needs path")
+            params["path"] = _resolve(base, params["path"], f"{where}: mesh")
+        objects.append(SceneObject(kind, material, params))
+    if not objects:
+        raise InputError(f"{path}: the scene has no [[objects]]")
+
+    light = top.table("lighting")
+    env = light.get("environment", str, "sky")
+    if env != "sky":
+        env = str(_resolve(base, env, f"{light.where}: environment"))
+    lighting = Lighting(
+        environment=env,
+        sky=light.get("sky", dict, {}),
+        intensity=light.get("intensity", float, 1.0),
+        rotation_deg=light.get("rotation_deg", float, 0.0),
+        points=tuple(light.get("points", list, [])),
+        shadows=light.get("shadows", bool, False),
+        indirect=light.get("indirect", bool, False),
+        samples=light.get("samples", int, 256),
+    )
+    light.done()
+
+    sensor_t = top.table("sensor")
+    c = sensor_t.get("contrast_threshold", float, 0.2)
+    effects = {}
+    for name, params in sensor_t.get("effects", dict, {}).items():
+        if name not in EFFECTS:
+            raise InputError(
+                f"{sensor_t.where}: unknown effect {name!r}; known: {', '.join(EFFECTS)}"
+            )
+        et = _Table(params if isinstance(params, dict) else {}, f"{sensor_t.where} effects.{name}")
+        effects[name] = {
+            key: et.get(key, kind, required=True) for key, kind in EFFECTS[name].items()
+        }
+        et.done()
+    sensor = SensorSpec(
+        color_filter=check_color_filter(sensor_t.get("color_filter", str, "RGBG")),
+        threshold_on=_positive(
+            sensor_t.where, "threshold_on", sensor_t.get("threshold_on", float, c)
+        ),
+        threshold_off=_positive(
+            sensor_t.where, "threshold_off", sensor_t.get("threshold_off", float, c)
+        ),
+        dark_level=_positive(sensor_t.where, "dark_level", sensor_t.get("dark_level", float, 1e-3)),
+        effects=effects,
+    )
+    sensor_t.done()
+
+    camera = _camera(top.table("camera"), base)
+    traj = top.table("trajectory")
+    kind = traj.get("kind", str, "orbit")
+    if kind not in ("orbit", "handheld", "linear", "static"):
+        raise InputError(f"{traj.where}: kind must be orbit, handheld, linear or static")
+    duration = _positive(traj.where, "duration_s", traj.get("duration_s", float, 2.0))
+    traj.used.update(traj.data)
+    trajectory = TrajectorySpec(
+        kind, duration, {k: v for k, v in traj.data.items() if k not in ("kind", "duration_s")}
+    )
+
+    aps = None
+    if "aps" in doc:
+        a = top.table("aps")
+        aps = ApsSpec(
+            fps=_positive(a.where, "fps", a.get("fps", float, 25.0)),
+            exposure_us=a.get("exposure_us", int, 4000),
+            gain=a.get("gain", float, 200.0),
+            read_noise=a.get("read_noise", float, 2.0),
+            shot_noise=a.get("shot_noise", bool, True),
+        )
+        a.done()
+    imu = None
+    if "imu" in doc:
+        i = top.table("imu")
+        imu = ImuSpec(
+            rate_hz=_positive(i.where, "rate_hz", i.get("rate_hz", float, 1000.0)),
+            gyro_noise=i.get("gyro_noise", float, 0.0),
+            accel_noise=i.get("accel_noise", float, 0.0),
+        )
+        i.done()
+    g = top.table("gt")
+    gt = GroundTruthSpec(
+        fps=_positive(g.where, "fps", g.get("fps", float, 20.0)),
+        test_views=g.get("test_views", int, 8),
+    )
+    g.done()
+    result = Scene(
+        path=path,
+        name=scene.get("name", str, path.stem),
+        seed=scene.get("seed", int, 0),
+        units_per_meter=_positive(
+            scene.where, "units_per_meter", scene.get("units_per_meter", float, 1.0)
+        ),
+        objects=tuple(objects),
+        materials=materials,
+        lighting=lighting,
+        camera=camera,
+        trajectory=trajectory,
+        sensor=sensor,
+        aps=aps,
+        imu=imu,
+        gt=gt,
+        max_step_px=scene.get("max_step_px", float, 0.5),
+        max_step_log=scene.get("max_step_log", float, 0.25),
+    )
+    scene.done()
+    top.used.update(
+        {
+            "scene",
+            "materials",
+            "objects",
+            "lighting",
+            "sensor",
+            "camera",
+            "trajectory",
+            "aps",
+            "imu",
+            "gt",
+        }
+    )
+    top.done()
+    return result

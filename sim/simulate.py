@@ -1,0 +1,451 @@
+"""`evcap simulate`: a scene -> a session with events (and frames, IMU) and its ground truth.
+
+Sampling: renders come at key times whose spacing keeps the image motion under
+``scene.max_step_px`` pixels; between two key renders, a pixel whose log signal changed by more
+than ``scene.max_step_log`` thresholds is rendered again at the midpoint, recursively, down to
+MIN_STEP_US (only those pixels, each from the camera at its own time). Each pixel's samples are
+then joined linearly and the pixel model (evcap.sim.events) turns them into events. A still
+camera renders identical frames and produces no events (unless noise effects are on).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from evcap.errors import InputError
+from evcap.events import Events
+from evcap.session import SensorInfo, SessionWriter, write_group
+from evcap.sim.events import PixelArray
+from evcap.sim.render import Renderer
+from evcap.sim.scene import Scene
+from evcap.sim.sensor import ChannelMap, aps_frame, imu_samples
+from evcap.sim.trajectory import Trajectory, look_at
+from evcap.streams import Frames, ImuSamples, TriggerKind, Triggers
+
+MIN_STEP_US = 2.0  # refinement stops at this interval: event times are good to about this
+MAX_STEP_US = 10_000.0  # longest key step (a still camera, or a slow one)
+EPOCH_US = 1_767_225_600_000_000  # t = 0 of simulated sessions: 2026-01-01T00:00:00Z
+POSE_RATE_HZ = 500.0  # rate of the /poses table (interpolate between)
+
+
+@dataclass
+class SimulationStats:
+    """What a run did, and where its time went (seconds)."""
+
+    events: int = 0
+    frames: int = 0
+    imu: int = 0
+    key_renders: int = 0
+    refined_pixels: int = 0  # pixel renders added by refinement
+    seconds: dict = field(
+        default_factory=lambda: {
+            "setup": 0.0,
+            "render": 0.0,
+            "events": 0.0,
+            "noise": 0.0,
+            "aps": 0.0,
+            "gt": 0.0,
+            "write": 0.0,
+        }
+    )
+
+
+class _Clock:
+    def __init__(self, stats: SimulationStats) -> None:
+        self.stats = stats
+
+    def __call__(self, name: str):
+        stats = self.stats
+
+        class _Timer:
+            def __enter__(self):
+                self.start = time.perf_counter()
+
+            def __exit__(self, *exc):
+                stats.seconds[name] += time.perf_counter() - self.start
+
+        return _Timer()
+
+
+class Simulator:
+    """Runs one scene."""
+
+    def __init__(
+        self,
+        scene: Scene,
+        *,
+        seed: int | None = None,
+        progress: Callable[[float, float], None] | None = None,
+    ) -> None:
+        self.scene = scene
+        self.seed = scene.seed if seed is None else seed
+        self.rng = np.random.default_rng(self.seed)
+        self.progress = progress
+        self.stats = SimulationStats()
+        self.clock = _Clock(self.stats)
+        with self.clock("setup"):
+            self.renderer = Renderer(scene)
+            self.camera = self.renderer.camera
+            self.trajectory = Trajectory(scene.trajectory, self.seed)
+            s = scene.sensor
+            self.channels = ChannelMap(self.camera.width, self.camera.height, s.color_filter)
+            self.pixels = PixelArray(
+                self.camera.width * self.camera.height,
+                s.threshold_on,
+                s.threshold_off,
+                s.effects,
+                self.rng,
+            )
+            # points of the scene, to bound the image motion
+            v = self.renderer.mesh.vertices
+            self._motion_points = v[self.rng.choice(len(v), min(len(v), 4000), replace=False)]
+        self.threshold = scene.max_step_log * min(s.threshold_on, s.threshold_off)
+
+    # -- sampling --------------------------------------------------------------------------------
+
+    def _log(self, radiance: np.ndarray, pixels: np.ndarray | None = None) -> np.ndarray:
+        return self.channels.log(radiance, self.scene.sensor.dark_level, pixels)
+
+    def _key(self, t_us: float) -> np.ndarray:
+        with self.clock("render"):
+            self.stats.key_renders += 1
+            r = self.renderer.render(self.trajectory.pose(t_us * 1e-6))
+            return self._log(r.radiance)
+
+    def _step_us(self, t_us: float) -> float:
+        """The next key step: the image motion stays under max_step_px."""
+        t = t_us * 1e-6
+        dt = 1e-4
+        b = min(t + dt, self.trajectory.duration_s)
+        if b <= t:
+            return MAX_STEP_US
+        moved = 0.0
+        uv = []
+        for T in (self.trajectory.pose(t), self.trajectory.pose(b)):
+            pc = (self._motion_points - T[:3, 3]) @ T[:3, :3]
+            uv.append(pc)
+        front = (uv[0][:, 2] > 1e-3) & (uv[1][:, 2] > 1e-3)
+        if front.any():
+            a_px, b_px = self.camera.project(uv[0][front]), self.camera.project(uv[1][front])
+            inside = (
+                (a_px[:, 0] > -10)
+                & (a_px[:, 0] < self.camera.width + 10)
+                & (a_px[:, 1] > -10)
+                & (a_px[:, 1] < self.camera.height + 10)
+            )
+            if inside.any():
+                moved = float(np.linalg.norm(b_px[inside] - a_px[inside], axis=1).max())
+        # rotation alone moves the background (the environment) too
+        ra, rb = self.trajectory.pose(t)[:3, :3], self.trajectory.pose(b)[:3, :3]
+        angle = np.arccos(np.clip((np.trace(ra.T @ rb) - 1) / 2, -1, 1))
+        moved = max(moved, angle * max(self.camera.K[0, 0], self.camera.K[1, 1]) * 1.5)
+        speed = moved / ((b - t) * 1e6)  # px per us
+        if speed <= 0:
+            return MAX_STEP_US
+        return float(np.clip(self.scene.max_step_px / speed, MIN_STEP_US, MAX_STEP_US))
+
+    def _render_at(self, pixels: np.ndarray, times_us: np.ndarray) -> np.ndarray:
+        """The log signal of ``pixels``, each from the camera at its own time."""
+        with self.clock("render"):
+            unique, inverse = np.unique(times_us, return_inverse=True)
+            poses = self.trajectory.poses(unique * 1e-6)
+            rays = self.camera.rays()[pixels]
+            rot = poses[inverse, :3, :3]
+            dirs = np.einsum("nij,nj->ni", rot, rays)
+            origins = poses[inverse, :3, 3]
+            self.stats.refined_pixels += len(pixels)
+            r = self.renderer.render_rays(origins, dirs)
+            return self._log(r.radiance, pixels)
+
+    def _refine(self, t0: float, t1: float, v0: np.ndarray, v1: np.ndarray):
+        """Extra samples (pixel, t, value) where a pixel's signal changed too much."""
+        px = np.flatnonzero(np.abs(v1 - v0) > self.threshold)
+        lo, hi = np.full(len(px), t0), np.full(len(px), t1)
+        vlo, vhi = v0[px], v1[px]
+        out_px, out_t, out_v = [], [], []
+        while len(px):
+            keep = hi - lo > MIN_STEP_US
+            px, lo, hi, vlo, vhi = px[keep], lo[keep], hi[keep], vlo[keep], vhi[keep]
+            if not len(px):
+                break
+            mid = np.round((lo + hi) / 2)  # whole microseconds
+            vmid = self._render_at(px, mid)
+            out_px.append(px)
+            out_t.append(mid)
+            out_v.append(vmid)
+            left = np.abs(vmid - vlo) > self.threshold
+            right = np.abs(vhi - vmid) > self.threshold
+            px = np.concatenate([px[left], px[right]])
+            lo = np.concatenate([lo[left], mid[right]])
+            hi = np.concatenate([mid[left], hi[right]])
+            vlo, vhi = (
+                np.concatenate([vlo[left], vmid[right]]),
+                np.concatenate([vmid[left], vhi[right]]),
+            )
+        if not out_px:
+            return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+        return np.concatenate(out_px), np.concatenate(out_t), np.concatenate(out_v)
+
+    def _interval_events(self, t0: float, t1: float, v0: np.ndarray, v1: np.ndarray):
+        extra_px, extra_t, extra_v = self._refine(t0, t1, v0, v1)
+        with self.clock("events"):
+            n = len(v0)
+            px = np.concatenate([np.arange(n), np.arange(n), extra_px])
+            t = np.concatenate([np.full(n, t0), np.full(n, t1), extra_t])
+            v = np.concatenate([v0, v1, extra_v])
+            order = np.lexsort((t, px))
+            px, t, v = px[order], t[order], v[order]
+            offsets = np.searchsorted(px, np.arange(n + 1))
+            return self.pixels.events(t, v, offsets, np.arange(n))
+
+    # -- the run ---------------------------------------------------------------------------------
+
+    def run(self, writer: SessionWriter) -> SimulationStats:
+        """Simulate the whole path into ``writer`` (events, frames, IMU, triggers)."""
+        scene, stats = self.scene, self.stats
+        duration_us = scene.trajectory.duration_s * 1e6
+        width = self.camera.width
+        aps = self._aps_times()
+        pending: list[tuple] = []  # events not yet safe to write (jitter may reorder them)
+        jitter = scene.sensor.effects.get("timestamp_jitter", {}).get("sigma_us", 0.0)
+        t = 0.0
+        v = self._key(t)
+        self.pixels.start(v, t)
+        while t < duration_us:
+            t_next = min(t + self._step_us(t), duration_us)
+            v_next = self._key(t_next)
+            et, epx, ep = self._interval_events(t, t_next, v, v_next)
+            with self.clock("noise"):
+                nt, npx, np_ = self.pixels.noise(t, t_next)
+                et, epx, ep = (
+                    np.concatenate([et, nt]),
+                    np.concatenate([epx, npx]),
+                    np.concatenate([ep, np_]),
+                )
+                et, epx, ep = self.pixels.degrade(et, epx, ep)
+            pending.append((et, epx, ep))
+            safe = t_next - 6 * jitter if t_next < duration_us else np.inf
+            pending = self._write_events(writer, pending, safe, width)
+            aps = self._write_frames(writer, aps, t_next)
+            t, v = t_next, v_next
+            if self.progress:
+                self.progress(t / 1e6, duration_us / 1e6)
+        self._write_frames(writer, aps, np.inf)
+        if scene.imu is not None:
+            ti, accel, gyro, temp = imu_samples(
+                self.trajectory, scene.imu, scene.units_per_meter, self.rng
+            )
+            writer.append_imu(ImuSamples(ti, accel, gyro, temp))
+            stats.imu = len(ti)
+        return stats
+
+    def _write_events(self, writer, pending, safe_us, width):
+        with self.clock("write"):
+            t = np.concatenate([p[0] for p in pending])
+            px = np.concatenate([p[1] for p in pending])
+            p = np.concatenate([p[2] for p in pending])
+            now = t < safe_us
+            order = np.argsort(t[now], kind="stable")
+            tn, pxn = t[now][order], px[now][order]
+            if len(tn):
+                writer.append_events(
+                    Events(
+                        pxn % width,
+                        pxn // width,
+                        np.floor(np.maximum(tn, 0)).astype(np.int64),
+                        p[now][order],
+                        width,
+                        self.camera.height,
+                        self.scene.sensor.color_filter,
+                    )
+                )
+                self.stats.events += len(tn)
+            rest = ~now
+            return [(t[rest], px[rest], p[rest])] if rest.any() else []
+
+    def _aps_times(self) -> list[float]:
+        a = self.scene.aps
+        if a is None:
+            return []
+        duration_us = self.scene.trajectory.duration_s * 1e6
+        starts = np.arange(0.0, duration_us - a.exposure_us, 1e6 / a.fps)
+        return list(starts)
+
+    def _write_frames(self, writer, starts: list[float], t_us: float) -> list[float]:
+        """Frames whose exposure ended by ``t_us``; the rest wait."""
+        a = self.scene.aps
+        while starts and starts[0] + a.exposure_us <= t_us:
+            start = starts.pop(0)
+            with self.clock("aps"):
+                n = max(1, int(np.ceil(a.exposure_us / 1000)))  # a render per ms: motion blur
+                total = 0
+                for k in range(n):
+                    tk = (start + (k + 0.5) * a.exposure_us / n) * 1e-6
+                    total = total + self.renderer.render(self.trajectory.pose(tk)).radiance
+                measured = self.channels.of(total / n)
+                raw = aps_frame(measured, a, self.rng).reshape(
+                    self.camera.height, self.camera.width
+                )
+            t0, t1 = int(round(start)), int(round(start + a.exposure_us))
+            writer.append_frames(Frames(raw[None], [t0], [a.exposure_us]))
+            writer.append_triggers(
+                Triggers(
+                    [t0, t0, t1, t1],
+                    [
+                        TriggerKind.APS_FRAME_START,
+                        TriggerKind.APS_EXPOSURE_START,
+                        TriggerKind.APS_EXPOSURE_END,
+                        TriggerKind.APS_FRAME_END,
+                    ],
+                )
+            )
+            self.stats.frames += 1
+        return starts
+
+    # -- ground truth ----------------------------------------------------------------------------
+
+    def ground_truth(self) -> tuple[dict, dict]:
+        """(/gt datasets, attributes): renders at gt.fps along the path and at held-out views."""
+        with self.clock("gt"):
+            g = self.scene.gt
+            times = np.arange(0.0, self.scene.trajectory.duration_s + 1e-9, 1.0 / g.fps)
+            poses = self.trajectory.poses(times)
+            frames = [self.renderer.render_full(T) for T in poses]
+            data = {
+                "t": np.round(times * 1e6).astype(np.int64),
+                "T_world_cam": poses,
+                "K": self.camera.K,
+                **{k: np.stack([f[k] for f in frames]) for k in frames[0]},
+                "threshold_on": self.pixels.con.reshape(
+                    self.camera.height, self.camera.width
+                ).astype(np.float32),
+                "threshold_off": self.pixels.coff.reshape(
+                    self.camera.height, self.camera.width
+                ).astype(np.float32),
+            }
+            test = self._test_poses(g.test_views)
+            if len(test):
+                views = [self.renderer.render_full(T) for T in test]
+                data["test_T_world_cam"] = test
+                for k in views[0]:
+                    data[f"test_{k}"] = np.stack([view[k] for view in views])
+        spec = self.scene.camera
+        attrs = {
+            "source": "evcap simulate",
+            "scene": self.scene.name,
+            "seed": self.seed,
+            "distortion_model": spec.distortion_model,
+            "distortion": np.asarray(spec.distortion, np.float64),
+            "depth": "z in the camera frame (OpenCV axes); 0 where no surface",
+            "normal": "unit, in the camera frame (OpenCV axes: x right, y down, z forward)",
+            "radiance": "linear RGB, before the color filter",
+            "hot_pixels": self.pixels.hot.astype(np.int64),
+            "charuco": json.dumps([_board_json(b) for b in self.renderer.boards if b]),
+        }
+        return data, attrs
+
+    def _test_poses(self, count: int) -> np.ndarray:
+        """Held-out views: off the path (moved by a tenth of the distance to the target,
+        looking at it), at times spread over the path."""
+        if count <= 0:
+            return np.zeros((0, 4, 4))
+        rng = np.random.default_rng(self.seed + 1_000_003)
+        target = self.trajectory.target
+        out = []
+        for t in (np.arange(count) + 0.5) / count * self.trajectory.duration_s:
+            T = self.trajectory.pose(t).copy()
+            eye = T[:3, 3]
+            offset = rng.normal(size=3)
+            offset *= 0.1 * np.linalg.norm(eye - target) / np.linalg.norm(offset)
+            T[:3, 3] = eye + offset
+            T[:3, :3] = look_at(T[:3, 3], target)
+            out.append(T)
+        return np.array(out)
+
+
+def _board_json(board: dict) -> dict:
+    return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in board.items()}
+
+
+def simulate(
+    scene: Scene,
+    output: str | Path,
+    *,
+    seed: int | None = None,
+    overwrite: bool = False,
+    fixture: str | Path | None = None,
+    progress: Callable[[float, float], None] | None = None,
+) -> SimulationStats:
+    """Simulate ``scene`` into the session ``output`` (with /gt, /poses, /calibration); with
+    ``fixture``, also write a hardware-replay fixture of it."""
+    output = Path(output)
+    if output.exists() and not overwrite:
+        raise InputError(f"{output} exists; choose another name or pass --force")
+    sim = Simulator(scene, seed=seed, progress=progress)
+    cam = sim.camera
+    sensor = SensorInfo(
+        "simulated",
+        cam.width,
+        cam.height,
+        scene.sensor.color_filter,
+        f"SIM-{scene.name}"[:32],
+        EPOCH_US,
+    )
+    attrs = {
+        "scene": scene.name,
+        "scene_file": str(scene.path),
+        "seed": sim.seed,
+        "effects": json.dumps(scene.sensor.effects),
+    }
+    with SessionWriter(output, sensor, attrs=attrs, overwrite=overwrite) as writer:
+        stats = sim.run(writer)
+    data, gt_attrs = sim.ground_truth()
+    write_group(output, "gt", data, gt_attrs)
+    times = np.arange(0.0, scene.trajectory.duration_s + 1e-9, 1.0 / POSE_RATE_HZ)
+    write_group(
+        output,
+        "poses",
+        {"t": np.round(times * 1e6).astype(np.int64), "T_world_cam": sim.trajectory.poses(times)},
+        {
+            "source": "ground truth",
+            "frame": "camera-to-world, OpenCV camera axes",
+            "interpolation": "linear position, slerp rotation",
+        },
+    )
+    s = scene.sensor
+    hot = np.zeros(cam.width * cam.height, np.uint8)
+    hot[sim.pixels.hot] = 1
+    write_group(
+        output,
+        "calibration",
+        {
+            "K": cam.K,
+            "distortion": np.asarray(scene.camera.distortion, np.float64),
+            "threshold_on": data["threshold_on"],
+            "threshold_off": data["threshold_off"],
+            "hot_pixels": hot.reshape(cam.height, cam.width),
+        },
+        {
+            "source": "ground truth",
+            "distortion_model": scene.camera.distortion_model,
+            "width": cam.width,
+            "height": cam.height,
+            "refractory_period_us": float(s.effects.get("refractory", {}).get("period_us", 0)),
+            "background_activity_hz": float(
+                s.effects.get("background_activity", {}).get("rate_hz", 0)
+            ),
+            "shot_noise_hz": float(s.effects.get("shot_noise", {}).get("rate_hz", 0)),
+            "reprojection_error_px": 0.0,
+        },
+    )
+    if fixture is not None:
+        from evcap.sim.fixture import write_fixture
+
+        write_fixture(output, Path(fixture))
+    return stats

@@ -1,0 +1,159 @@
+"""Camera paths: camera-to-world poses as smooth functions of time, and the IMU they imply.
+
+World axes: z is up. Camera axes are OpenCV's (x right, y down, z forward). A pose is a 4 x 4
+camera-to-world matrix T_world_cam.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from evcap.errors import InputError
+from evcap.sim.scene import TrajectorySpec
+
+GRAVITY = 9.80665  # m/s^2
+UP = np.array([0.0, 0.0, 1.0])
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = UP) -> np.ndarray:
+    """The rotation (camera-to-world, columns = camera x, y, z in the world) of a camera at
+    ``eye`` looking at ``target`` with its image upright."""
+    forward = target - eye
+    forward = forward / np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    if np.linalg.norm(right) < 1e-9:  # looking straight up or down: any right will do
+        right = np.cross(forward, np.array([1.0, 0.0, 0.0]))
+    right = right / np.linalg.norm(right)
+    down = np.cross(forward, right)
+    return np.stack([right, down, forward], axis=1)
+
+
+def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
+    axis = axis / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def log_so3(r: np.ndarray) -> np.ndarray:
+    """The rotation vector (axis * angle) of a rotation matrix."""
+    cos = np.clip((np.trace(r) - 1) / 2, -1.0, 1.0)
+    angle = np.arccos(cos)
+    w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    if angle < 1e-9:
+        return w / 2
+    return w * angle / (2 * np.sin(angle))
+
+
+def _vec(params: dict, key: str, default) -> np.ndarray:
+    value = params.get(key, default)
+    if not isinstance(value, list | tuple) or len(value) != 3:
+        raise InputError(f"trajectory: {key} must be 3 numbers, got {value!r}")
+    return np.asarray(value, np.float64)
+
+
+class Trajectory:
+    """A camera path over [0, duration_s]."""
+
+    def __init__(self, spec: TrajectorySpec, seed: int = 0) -> None:
+        self.spec = spec
+        self.duration_s = spec.duration_s
+        p = spec.params
+        self.kind = spec.kind
+        known = {
+            "orbit": {"center", "radius", "height", "start_deg", "degrees", "look_at"},
+            "handheld": {"start", "end", "look_at", "shake_units", "shake_deg", "shake_hz"},
+            "linear": {"start", "end", "look_at"},
+            "static": {"position", "look_at"},
+        }[spec.kind]
+        unknown = set(p) - known
+        if unknown:
+            raise InputError(
+                f"trajectory ({spec.kind}): unknown key(s) {', '.join(sorted(unknown))}"
+            )
+        if spec.kind == "orbit":
+            self.center = _vec(p, "center", [0, 0, 0])
+            self.radius = float(p.get("radius", 2.0))
+            self.height = float(p.get("height", 0.5))
+            self.start = np.deg2rad(float(p.get("start_deg", 0.0)))
+            self.sweep = np.deg2rad(float(p.get("degrees", 90.0)))
+            self.target = _vec(p, "look_at", list(self.center))
+            if self.radius <= 0:
+                raise InputError("trajectory: radius must be positive")
+        elif spec.kind in ("handheld", "linear"):
+            self.a = _vec(p, "start", [2, 0, 0.5])
+            self.b = _vec(p, "end", list(self.a))
+            self.target = _vec(p, "look_at", [0, 0, 0])
+            if spec.kind == "handheld":
+                rng = np.random.default_rng(seed)
+                hz = float(p.get("shake_hz", 2.0))
+                self.shake_units = float(p.get("shake_units", 0.02))
+                self.shake_rad = np.deg2rad(float(p.get("shake_deg", 1.0)))
+                # a few incommensurate sinusoids per axis: smooth, like a hand
+                self.freqs = hz * rng.uniform(0.5, 1.5, (2, 3, 3))
+                self.phases = rng.uniform(0, 2 * np.pi, (2, 3, 3))
+        else:
+            self.position = _vec(p, "position", [2, 0, 0.5])
+            self.target = _vec(p, "look_at", [0, 0, 0])
+
+    def _shake(self, t: float, k: int) -> np.ndarray:
+        return np.sin(2 * np.pi * self.freqs[k] * t + self.phases[k]).mean(axis=1)
+
+    def pose(self, t: float) -> np.ndarray:
+        """T_world_cam at time t (seconds)."""
+        T = np.eye(4)
+        if self.kind == "orbit":
+            a = self.start + self.sweep * t / self.duration_s
+            eye = self.center + np.array(
+                [self.radius * np.cos(a), self.radius * np.sin(a), self.height]
+            )
+            T[:3, :3] = look_at(eye, self.target)
+        elif self.kind in ("handheld", "linear"):
+            s = t / self.duration_s
+            eye = self.a + (self.b - self.a) * s
+            r = look_at(eye, self.target)
+            if self.kind == "handheld":
+                eye = eye + self.shake_units * self._shake(t, 0)
+                w = self.shake_rad * self._shake(t, 1)
+                angle = np.linalg.norm(w)
+                if angle > 0:
+                    r = r @ rotation_about(w, angle)
+            T[:3, :3] = r
+        else:
+            eye = self.position
+            T[:3, :3] = look_at(eye, self.target)
+        T[:3, 3] = eye
+        return T
+
+    def poses(self, times_s: np.ndarray) -> np.ndarray:
+        return np.stack([self.pose(float(t)) for t in np.atleast_1d(times_s)])
+
+    def imu(
+        self, times_s: np.ndarray, units_per_meter: float = 1.0, dt: float = 1e-4
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(accel [N, 3] m/s^2, gyro [N, 3] rad/s) an IMU in the camera's axes would read:
+        the specific force (acceleration minus gravity) and the angular velocity."""
+        accel, gyro = [], []
+        for t in np.atleast_1d(times_s):
+            t = float(np.clip(t, dt, self.duration_s - dt)) if self.duration_s > 2 * dt else t
+            p0, p1, p2 = (self.pose(t - dt), self.pose(t), self.pose(t + dt))
+            a_world = (p2[:3, 3] - 2 * p1[:3, 3] + p0[:3, 3]) / (dt * dt) / units_per_meter
+            r = p1[:3, :3]
+            accel.append(r.T @ (a_world + GRAVITY * UP))
+            gyro.append(log_so3(p0[:3, :3].T @ p2[:3, :3]) / (2 * dt))
+        return np.array(accel), np.array(gyro)
+
+    def speed_px(self, t: float, points: np.ndarray, camera, dt: float = 1e-3) -> float:
+        """The largest image motion (pixels per second) of ``points`` (world) at time t."""
+        a, b = self.pose(t), self.pose(min(t + dt, self.duration_s))
+        uv = []
+        for T in (a, b):
+            pc = (points - T[:3, 3]) @ T[:3, :3]
+            front = pc[:, 2] > 1e-6
+            uv.append((camera.project(pc[front]) if front.any() else np.zeros((0, 2)), front))
+        both = uv[0][1] & uv[1][1]
+        if not both.any():
+            return 0.0
+        ua = camera.project((points[both] - a[:3, 3]) @ a[:3, :3])
+        ub = camera.project((points[both] - b[:3, 3]) @ b[:3, :3])
+        step = max(min(t + dt, self.duration_s) - t, 1e-9)
+        return float(np.linalg.norm(ub - ua, axis=1).max() / step)
