@@ -202,6 +202,52 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
 DEVICE_HELP = "usb (the first camera), usb:SERIAL, or replay:PATH (a hardware-replay fixture)"
 
 
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from evcap._progress import progress_bar
+
+    if (args.scene is None) == (args.from_images is None):
+        raise InputError("give a scene file, or --from-images TRANSFORMS (not both)")
+    if args.from_images:
+        from evcap.sim.from_images import simulate_from_images
+
+        with progress_bar("simulating") as update:
+            n = simulate_from_images(
+                args.from_images,
+                args.output,
+                fps=args.fps,
+                color_filter=args.color_filter,
+                threshold=args.threshold,
+                scale=args.scale,
+                seed=args.seed or 0,
+                overwrite=args.force,
+                progress=update,
+            )
+        print(f"{args.output}: {n:,} events from {args.from_images}")
+        return 0
+    from evcap.sim.scene import load_scene
+    from evcap.sim.simulate import simulate
+
+    scene = load_scene(args.scene)
+    with progress_bar(f"simulating {scene.name}") as update:
+        stats = simulate(
+            scene,
+            args.output,
+            seed=args.seed,
+            overwrite=args.force,
+            fixture=args.fixture,
+            progress=update,
+        )
+    print(
+        f"{args.output}: {stats.events:,} events, {stats.frames:,} frames, {stats.imu:,} IMU "
+        f"samples ({stats.key_renders:,} renders, {sum(stats.seconds.values()):.1f} s)"
+    )
+    if args.fixture:
+        print(
+            f"{args.fixture}: hardware-replay fixture (evcap record --device replay:{args.fixture})"
+        )
+    return 0
+
+
 def _capture_arguments(p: argparse.ArgumentParser) -> None:
     """The options of a running camera, shared by record and monitor."""
     p.add_argument("--device", default="usb", help=DEVICE_HELP)
@@ -288,6 +334,35 @@ def build_parser() -> argparse.ArgumentParser:
         help="replay devices: play at this multiple of real time (default 1)",
     )
     p.set_defaults(run=_cmd_monitor)
+
+    p = sub.add_parser(
+        "simulate",
+        help="simulate a color event camera in a scene, with ground truth",
+        description="Simulate a scene (TOML, see sim/scenes/README.md) into a session with its "
+        "ground truth (/gt), poses and calibration; or events from posed images.",
+    )
+    p.add_argument("scene", nargs="?", help="the scene file (.toml)")
+    p.add_argument("-o", "--output", required=True, help="the session file to write (.h5)")
+    p.add_argument("--fixture", metavar="DIR", help="also write a hardware-replay fixture")
+    p.add_argument("--seed", type=int, help="random seed (default: the scene's)")
+    p.add_argument(
+        "--from-images",
+        metavar="TRANSFORMS",
+        help="a NeRF-style transforms.json: events from its posed images",
+    )
+    p.add_argument("--fps", type=float, default=30.0, help="--from-images: images per second")
+    p.add_argument(
+        "--color-filter",
+        default="RGBG",
+        choices=["RGBG", "MONO"],
+        help="--from-images: the simulated sensor's filter",
+    )
+    p.add_argument("--threshold", type=float, default=0.2, help="--from-images: contrast threshold")
+    p.add_argument(
+        "--scale", type=float, default=1.0, help="--from-images: resize the images by this factor"
+    )
+    p.add_argument("-f", "--force", action="store_true", help="overwrite the output file")
+    p.set_defaults(run=_cmd_simulate)
     return parser
 
 

@@ -445,7 +445,7 @@ def simulate(
         },
     )
     if fixture is not None:
-        from evcap.sim.fixture import write_fixture
+        from evcap.sim.fixture import write_session_fixture
 
-        write_fixture(output, Path(fixture))
+        write_session_fixture(output, fixture)
     return stats
