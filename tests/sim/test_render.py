@@ -1,0 +1,95 @@
+"""The renderer against cases whose answer is known."""
+
+import numpy as np
+import pytest
+
+from evcap.sim.lighting import Environment, dfg_table, fibonacci_sphere
+from evcap.sim.render import Renderer
+from evcap.sim.scene import Lighting, load_scene
+from evcap.sim.trajectory import Trajectory
+
+UNIFORM_SKY = 'environment = "sky"\nsky = { zenith = [1, 1, 1], horizon = [1, 1, 1], ground = [1, 1, 1] }'
+
+
+def test_environment_irradiance_is_pi_for_a_uniform_sky():
+    env = Environment(Lighting(sky={"zenith": [1, 1, 1], "horizon": [1, 1, 1], "ground": [1, 1, 1]}))
+    normals = fibonacci_sphere(16)
+    np.testing.assert_allclose(env.irradiance(normals, 1024), np.pi, rtol=0.01)
+
+
+def test_dfg_table_sums_to_the_white_furnace():
+    # A + B is the directional albedo of the GGX lobe with F = 1: at most 1, near 1 when smooth
+    ab = dfg_table(16, 512)
+    total = ab.sum(-1)
+    assert (total <= 1.01).all() and total[-1, 0] > 0.95
+
+
+def test_lambert_sphere_under_a_uniform_sky(tiny_scene):
+    path = tiny_scene(lighting=UNIFORM_SKY, objects=(
+        '[[objects]]\ntype = "sphere"\nradius = 0.6\nmaterial = "gray"\n'
+        '[materials.gray]\nbase_color = [0.5, 0.3, 0.2]\nroughness = 1.0'),
+        trajectory='kind = "static"\nposition = [2.0, 0.0, 0.0]\nlook_at = [0, 0, 0]')
+    scene = load_scene(path)
+    r = Renderer(scene)
+    T = Trajectory(scene.trajectory).pose(0.0)
+    out = r.render_full(T)
+    h, w = out["depth"].shape
+    c = (h // 2, w // 2)
+    # albedo times the sky (E = pi, Lambert divides by pi) plus a small GGX specular part
+    diffuse = np.array([0.5, 0.3, 0.2])
+    assert np.all(out["radiance"][c] >= diffuse) and np.all(out["radiance"][c] < diffuse + 0.1)
+    assert out["depth"][c] == pytest.approx(2.0 - 0.6, abs=2e-3)
+    np.testing.assert_allclose(out["normal"][c], [0, 0, -1], atol=0.05)  # facing the camera
+    np.testing.assert_allclose(out["base_color"][c], diffuse, atol=1e-6)
+    assert out["roughness"][c] == pytest.approx(1.0)
+    assert out["depth"][0, 0] == 0 and np.all(out["radiance"][0, 0] == pytest.approx(1.0))
+
+
+SUN = ('environment = "sky"\nsky = { zenith = [0.2, 0.2, 0.2], horizon = [0.2, 0.2, 0.2], '
+       'ground = [0.2, 0.2, 0.2], sun_direction = [0, 0, 1], sun_irradiance = 3.0 }')
+FLOOR_AND_BALL = """
+[materials.white]
+base_color = [0.8, 0.8, 0.8]
+roughness = 1.0
+[materials.red]
+base_color = [0.9, 0.05, 0.05]
+roughness = 1.0
+[[objects]]
+type = "plane"
+size = [3.0, 3.0]
+subdivisions = 48
+material = "white"
+[[objects]]
+type = "box"
+center = [0.0, 0.0, 0.5]
+size = [0.6, 0.6, 1.0]
+material = "red"
+"""
+TOP_VIEW = 'kind = "static"\nposition = [0.01, 0.0, 3.0]\nlook_at = [0, 0, 0]'
+
+
+def test_shadows_and_color_bleeding_only_when_asked(tiny_scene):
+    """Looking down at a red post on a white floor lit from above: shadows darken the floor
+    next to the post (sky blocked), and light bounced off the post reddens it."""
+    images = {}
+    for shadows, indirect in ((False, False), (True, False), (True, True)):
+        lighting = SUN + f"\nshadows = {str(shadows).lower()}\nindirect = {str(indirect).lower()}"
+        scene = load_scene(tiny_scene(lighting=lighting, objects=FLOOR_AND_BALL,
+                                      trajectory=TOP_VIEW, width=64, height=48, fx=40.0))
+        r = Renderer(scene)
+        images[(shadows, indirect)] = r.render_full(Trajectory(scene.trajectory).pose(0.0))
+    # a floor point just beside the post (the camera looks straight down at the origin)
+    plain, shadowed, bled = (images[k] for k in [(False, False), (True, False), (True, True)])
+    floor = (plain["base_color"][..., 1] > 0.7) & (plain["depth"] > 0)
+    post = plain["base_color"][..., 1] < 0.1
+    grown = post.copy()
+    for _ in range(3):  # the floor within 3 pixels of the post
+        grown = grown | np.roll(grown, 1, 0) | np.roll(grown, -1, 0) | np.roll(grown, 1, 1) \
+            | np.roll(grown, -1, 1)
+    near = floor & grown
+    assert post.any() and near.sum() > 10
+    lum = lambda img: img["radiance"][near].mean(0)  # noqa: E731
+    assert lum(shadowed).sum() < lum(plain).sum()  # the post hides part of the sky
+    gain = lum(bled) / lum(shadowed) - 1  # light bounced off the post: red, not green/blue
+    assert gain[0] > 0.005 and gain[0] > 10 * np.abs(gain[1:]).max(), gain
+    np.testing.assert_allclose(plain["base_color"], bled["base_color"])  # truth unchanged
