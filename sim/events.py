@@ -181,7 +181,7 @@ class PixelArray:
                 self.leak,
                 self.refractory_us,
                 self.tau_us,
-                max(self.tau_us / 4, 1.0),
+                max(self.tau_us / 10, 1.0),
                 out_t,
                 out_px,
                 out_p,

@@ -52,10 +52,19 @@ def tiny_scene(tmp_path):
     """Write a small scene file; keyword arguments replace parts of it."""
 
     def make(**kw) -> Path:
-        values = {"seed": 3, "scene_extra": "", "color_filter": "RGBG", "effects": "",
-                  "width": 48, "height": 36, "fx": 45.0, "trajectory": ORBIT,
-                  "lighting": 'environment = "sky"', "objects": SPHERE,
-                  "extra": "[gt]\nfps = 10\ntest_views = 2"}
+        values = {
+            "seed": 3,
+            "scene_extra": "",
+            "color_filter": "RGBG",
+            "effects": "",
+            "width": 48,
+            "height": 36,
+            "fx": 45.0,
+            "trajectory": ORBIT,
+            "lighting": 'environment = "sky"',
+            "objects": SPHERE,
+            "extra": "[gt]\nfps = 10\ntest_views = 2",
+        }
         values.update(kw)
         path = tmp_path / f"scene-{len(list(tmp_path.glob('scene-*')))}.toml"
         path.write_text(textwrap.dedent(TINY.format(**values)))

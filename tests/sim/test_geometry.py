@@ -17,8 +17,13 @@ def test_obj_with_polygons_and_uvs(tmp_path):
     (tmp_path / "cube.obj").write_text("\n".join(lines) + "\n")
     m = load_obj(tmp_path / "cube.obj")
     assert m.faces.shape == (12, 3)  # quads fanned into triangles
-    area = np.linalg.norm(np.cross(m.vertices[m.faces[:, 1]] - m.vertices[m.faces[:, 0]],
-                                   m.vertices[m.faces[:, 2]] - m.vertices[m.faces[:, 0]]), axis=1)
+    area = np.linalg.norm(
+        np.cross(
+            m.vertices[m.faces[:, 1]] - m.vertices[m.faces[:, 0]],
+            m.vertices[m.faces[:, 2]] - m.vertices[m.faces[:, 0]],
+        ),
+        axis=1,
+    )
     assert area.sum() / 2 == pytest.approx(6.0)
     (tmp_path / "bad.obj").write_text("v 0 0 0\nf 1 2 3\n")
     with pytest.raises(InputError, match="does not exist"):
@@ -28,16 +33,29 @@ def test_obj_with_polygons_and_uvs(tmp_path):
 @pytest.mark.parametrize("binary", [False, True])
 def test_ply_ascii_and_binary(tmp_path, binary):
     v = np.array(CUBE_V, np.float32)
-    header = ["ply", "format " + ("binary_little_endian" if binary else "ascii") + " 1.0",
-              "element vertex 8", "property float x", "property float y", "property float z",
-              "element face 6", "property list uchar int vertex_indices", "end_header"]
+    header = [
+        "ply",
+        "format " + ("binary_little_endian" if binary else "ascii") + " 1.0",
+        "element vertex 8",
+        "property float x",
+        "property float y",
+        "property float z",
+        "element face 6",
+        "property list uchar int vertex_indices",
+        "end_header",
+    ]
     body = b""
     if binary:
-        body = v.tobytes() + b"".join(np.uint8(4).tobytes() + np.array(f, "<i4").tobytes()
-                                       for f in CUBE_F)
+        body = v.tobytes() + b"".join(
+            np.uint8(4).tobytes() + np.array(f, "<i4").tobytes() for f in CUBE_F
+        )
     else:
-        body = ("\n".join(" ".join(map(str, p)) for p in CUBE_V) + "\n"
-                + "\n".join("4 " + " ".join(map(str, f)) for f in CUBE_F) + "\n").encode()
+        body = (
+            "\n".join(" ".join(map(str, p)) for p in CUBE_V)
+            + "\n"
+            + "\n".join("4 " + " ".join(map(str, f)) for f in CUBE_F)
+            + "\n"
+        ).encode()
     (tmp_path / "cube.ply").write_bytes(("\n".join(header) + "\n").encode() + body)
     m = load_ply(tmp_path / "cube.ply")
     assert m.faces.shape == (12, 3) and np.allclose(m.vertices, v)
@@ -79,8 +97,10 @@ def test_bvh_matches_brute_force():
 def test_primitives_are_closed_and_outward():
     for mesh in (sphere(32, 16), box(4)):
         center = mesh.vertices[mesh.faces].mean(1)
-        fn = np.cross(mesh.vertices[mesh.faces[:, 1]] - mesh.vertices[mesh.faces[:, 0]],
-                      mesh.vertices[mesh.faces[:, 2]] - mesh.vertices[mesh.faces[:, 0]])
+        fn = np.cross(
+            mesh.vertices[mesh.faces[:, 1]] - mesh.vertices[mesh.faces[:, 0]],
+            mesh.vertices[mesh.faces[:, 2]] - mesh.vertices[mesh.faces[:, 0]],
+        )
         assert (np.einsum("ij,ij->i", fn, center) > 0).all()  # counter-clockwise from outside
         bvh = Bvh(mesh.vertices, mesh.faces)
         d = np.random.default_rng(1).normal(size=(2000, 3))

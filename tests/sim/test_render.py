@@ -8,11 +8,15 @@ from evcap.sim.render import Renderer
 from evcap.sim.scene import Lighting, load_scene
 from evcap.sim.trajectory import Trajectory
 
-UNIFORM_SKY = 'environment = "sky"\nsky = { zenith = [1, 1, 1], horizon = [1, 1, 1], ground = [1, 1, 1] }'
+UNIFORM_SKY = (
+    'environment = "sky"\nsky = { zenith = [1, 1, 1], horizon = [1, 1, 1], ground = [1, 1, 1] }'
+)
 
 
 def test_environment_irradiance_is_pi_for_a_uniform_sky():
-    env = Environment(Lighting(sky={"zenith": [1, 1, 1], "horizon": [1, 1, 1], "ground": [1, 1, 1]}))
+    env = Environment(
+        Lighting(sky={"zenith": [1, 1, 1], "horizon": [1, 1, 1], "ground": [1, 1, 1]})
+    )
     normals = fibonacci_sphere(16)
     np.testing.assert_allclose(env.irradiance(normals, 1024), np.pi, rtol=0.01)
 
@@ -25,10 +29,14 @@ def test_dfg_table_sums_to_the_white_furnace():
 
 
 def test_lambert_sphere_under_a_uniform_sky(tiny_scene):
-    path = tiny_scene(lighting=UNIFORM_SKY, objects=(
-        '[[objects]]\ntype = "sphere"\nradius = 0.6\nmaterial = "gray"\n'
-        '[materials.gray]\nbase_color = [0.5, 0.3, 0.2]\nroughness = 1.0'),
-        trajectory='kind = "static"\nposition = [2.0, 0.0, 0.0]\nlook_at = [0, 0, 0]')
+    path = tiny_scene(
+        lighting=UNIFORM_SKY,
+        objects=(
+            '[[objects]]\ntype = "sphere"\nradius = 0.6\nmaterial = "gray"\n'
+            "[materials.gray]\nbase_color = [0.5, 0.3, 0.2]\nroughness = 1.0"
+        ),
+        trajectory='kind = "static"\nposition = [2.0, 0.0, 0.0]\nlook_at = [0, 0, 0]',
+    )
     scene = load_scene(path)
     r = Renderer(scene)
     T = Trajectory(scene.trajectory).pose(0.0)
@@ -45,8 +53,10 @@ def test_lambert_sphere_under_a_uniform_sky(tiny_scene):
     assert out["depth"][0, 0] == 0 and np.all(out["radiance"][0, 0] == pytest.approx(1.0))
 
 
-SUN = ('environment = "sky"\nsky = { zenith = [0.2, 0.2, 0.2], horizon = [0.2, 0.2, 0.2], '
-       'ground = [0.2, 0.2, 0.2], sun_direction = [0, 0, 1], sun_irradiance = 3.0 }')
+SUN = (
+    'environment = "sky"\nsky = { zenith = [0.2, 0.2, 0.2], horizon = [0.2, 0.2, 0.2], '
+    "ground = [0.2, 0.2, 0.2], sun_direction = [0, 0, 1], sun_irradiance = 3.0 }"
+)
 FLOOR_AND_BALL = """
 [materials.white]
 base_color = [0.8, 0.8, 0.8]
@@ -74,8 +84,16 @@ def test_shadows_and_color_bleeding_only_when_asked(tiny_scene):
     images = {}
     for shadows, indirect in ((False, False), (True, False), (True, True)):
         lighting = SUN + f"\nshadows = {str(shadows).lower()}\nindirect = {str(indirect).lower()}"
-        scene = load_scene(tiny_scene(lighting=lighting, objects=FLOOR_AND_BALL,
-                                      trajectory=TOP_VIEW, width=64, height=48, fx=40.0))
+        scene = load_scene(
+            tiny_scene(
+                lighting=lighting,
+                objects=FLOOR_AND_BALL,
+                trajectory=TOP_VIEW,
+                width=64,
+                height=48,
+                fx=40.0,
+            )
+        )
         r = Renderer(scene)
         images[(shadows, indirect)] = r.render_full(Trajectory(scene.trajectory).pose(0.0))
     # a floor point just beside the post (the camera looks straight down at the origin)
@@ -84,8 +102,13 @@ def test_shadows_and_color_bleeding_only_when_asked(tiny_scene):
     post = plain["base_color"][..., 1] < 0.1
     grown = post.copy()
     for _ in range(3):  # the floor within 3 pixels of the post
-        grown = grown | np.roll(grown, 1, 0) | np.roll(grown, -1, 0) | np.roll(grown, 1, 1) \
+        grown = (
+            grown
+            | np.roll(grown, 1, 0)
+            | np.roll(grown, -1, 0)
+            | np.roll(grown, 1, 1)
             | np.roll(grown, -1, 1)
+        )
     near = floor & grown
     assert post.any() and near.sum() > 10
     lum = lambda img: img["radiance"][near].mean(0)  # noqa: E731

@@ -10,8 +10,7 @@ from evcap.sim.scene import CALIBRATIONS, load_scene
 SCENES = Path(__file__).resolve().parents[2] / "sim" / "scenes"
 
 
-@pytest.mark.parametrize("name", ["single_object", "multi_object", "charuco_board",
-                                  "noisy_sensor"])
+@pytest.mark.parametrize("name", ["single_object", "multi_object", "charuco_board", "noisy_sensor"])
 def test_example_scenes_load(name):
     if not CALIBRATIONS.exists():
         pytest.skip("needs ../shared (the scenes use a real calibration)")
@@ -19,21 +18,34 @@ def test_example_scenes_load(name):
     assert scene.camera.width == 346 and scene.camera.distortion_model == "radtan"
     if name == "noisy_sensor":
         assert set(scene.sensor.effects) == {
-            "threshold_spread", "background_activity", "shot_noise", "hot_pixels", "refractory",
-            "bandwidth", "timestamp_jitter", "dropped"}
+            "threshold_spread",
+            "background_activity",
+            "shot_noise",
+            "hot_pixels",
+            "refractory",
+            "bandwidth",
+            "timestamp_jitter",
+            "dropped",
+        }
 
 
-@pytest.mark.parametrize("change, message", [
-    ({"effects": "[sensor.effects]\nsparkles = { rate_hz = 1.0 }"}, "unknown effect 'sparkles'"),
-    ({"effects": "[sensor.effects]\nshot_noise = { rate = 1.0 }"}, "missing rate_hz"),
-    ({"objects": '[[objects]]\ntype = "cone"'}, "type must be one of"),
-    ({"objects": '[[objects]]\ntype = "sphere"\nmaterial = "gold"'}, "unknown material 'gold'"),
-    ({"objects": '[[objects]]\ntype = "mesh"\npath = "nope.obj"'}, "not found"),
-    ({"trajectory": 'kind = "spiral"'}, "kind must be orbit"),
-    ({"trajectory": 'kind = "orbit"\nradius = 2.0\nspeed = 3.0'}, None),
-    ({"scene_extra": "colour = 1"}, "unknown key"),
-    ({"fx": -3.0}, "fx must be positive"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (
+            {"effects": "[sensor.effects]\nsparkles = { rate_hz = 1.0 }"},
+            "unknown effect 'sparkles'",
+        ),
+        ({"effects": "[sensor.effects]\nshot_noise = { rate = 1.0 }"}, "missing rate_hz"),
+        ({"objects": '[[objects]]\ntype = "cone"'}, "type must be one of"),
+        ({"objects": '[[objects]]\ntype = "sphere"\nmaterial = "gold"'}, "unknown material 'gold'"),
+        ({"objects": '[[objects]]\ntype = "mesh"\npath = "nope.obj"'}, "not found"),
+        ({"trajectory": 'kind = "spiral"'}, "kind must be orbit"),
+        ({"trajectory": 'kind = "orbit"\nradius = 2.0\nspeed = 3.0'}, None),
+        ({"scene_extra": "colour = 1"}, "unknown key"),
+        ({"fx": -3.0}, "fx must be positive"),
+    ],
+)
 def test_scene_errors_name_the_problem(tiny_scene, change, message):
     path = tiny_scene(**change)
     if message is None:  # a trajectory key is checked when the path is built
@@ -49,12 +61,16 @@ def test_scene_errors_name_the_problem(tiny_scene, change, message):
 def test_real_calibrations_and_distortion_round_trip():
     if not CALIBRATIONS.exists():
         pytest.skip("needs ../shared")
-    for name in ("esvo_hkust_davis346_left.yaml", "esvo_upenn_davis346_left.yaml",
-                 "arclab_esvio_kalibr_camchain-imucam.yaml", "arclab_iros2022_davis346.yaml"):
+    for name in (
+        "esvo_hkust_davis346_left.yaml",
+        "esvo_upenn_davis346_left.yaml",
+        "arclab_esvio_kalibr_camchain-imucam.yaml",
+        "arclab_iros2022_davis346.yaml",
+    ):
         cam = Camera(load_calibration(CALIBRATIONS / name))
         rays = cam.rays()
         uv = cam.project(rays * 2.0)
-        v, u = np.mgrid[0:cam.height, 0:cam.width]
+        v, u = np.mgrid[0 : cam.height, 0 : cam.width]
         np.testing.assert_allclose(uv, np.stack([u.ravel(), v.ravel()], 1), atol=1e-6)
         assert 220 < cam.K[0, 0] < 265 and (cam.width, cam.height) == (346, 260)
     with pytest.raises(InputError, match="not a ROS camera_info"):
