@@ -103,16 +103,33 @@ def merge(parts: list[Mesh]) -> Mesh:
     )
 
 
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted vertex normals."""
-    fn = np.cross(
+def smooth_shaded(
+    vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray, sharp_deg: float = 40.0
+) -> Mesh:
+    """The mesh with normals smoothed across edges flatter than ``sharp_deg`` and split at
+    sharper ones (a cube keeps flat faces, a sphere is smooth), like an auto-smooth."""
+    raw = np.cross(
         vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]]
-    )
-    n = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(n, faces[:, k], fn)
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    return n / np.maximum(length, 1e-12)
+    )  # length: twice the area
+    unit = raw / np.maximum(np.linalg.norm(raw, axis=1, keepdims=True), 1e-300)
+    _, position = np.unique(vertices, axis=0, return_inverse=True)  # across UV seams too
+    corner_pos = position.ravel()[faces.ravel()]
+    corner_face = np.repeat(np.arange(len(faces)), 3)
+    order = np.argsort(corner_pos, kind="stable")
+    bounds = np.flatnonzero(np.diff(corner_pos[order], prepend=-1, append=-2))
+    normals = np.zeros((len(corner_pos), 3))
+    cos_sharp = np.cos(np.deg2rad(sharp_deg))
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        corners = order[a:b]
+        fs = corner_face[corners]
+        similar = unit[fs] @ unit[fs].T > cos_sharp
+        normals[corners] = similar @ raw[fs]
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    # one vertex per (vertex, normal): corners on both sides of a sharp edge part
+    keys = np.concatenate([faces.ravel()[:, None].astype(np.float64), np.round(normals, 6)], 1)
+    unique, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    source = faces.ravel()[first]
+    return Mesh(vertices[source], normals[first], uvs[source], inverse.reshape(-1, 3))
 
 
 def load_obj(path: Path) -> Mesh:
@@ -157,7 +174,7 @@ def load_obj(path: Path) -> Mesh:
         f = inverse.reshape(-1, 3)
     else:
         vertices, uvs = v, np.zeros((len(v), 2))
-    return Mesh(vertices, vertex_normals(vertices, f), uvs, f)
+    return smooth_shaded(vertices, f, uvs)
 
 
 def load_ply(path: Path) -> Mesh:
@@ -234,7 +251,7 @@ def load_ply(path: Path) -> Mesh:
         None,
     )
     uvs = np.stack([vertex[uk[0]], vertex[uk[1]]], 1) if uk else np.zeros((len(v), 2))
-    return Mesh(v, vertex_normals(v, f), uvs, f)
+    return smooth_shaded(v, f, uvs)
 
 
 def charuco_board(params: dict) -> tuple[Mesh, dict]:

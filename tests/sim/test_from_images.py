@@ -3,7 +3,6 @@
 import json
 
 import numpy as np
-import pytest
 
 from evcap.session import Session
 from evcap.sim.from_images import BLENDER_TO_OPENCV, interpolate, simulate_from_images
@@ -34,8 +33,12 @@ def write_dataset(folder, tiny_scene, views=9):
     """Renders of a small scene along an orbit, written as a NeRF-Synthetic dataset."""
     import cv2
 
-    scene = load_scene(tiny_scene(trajectory='kind = "orbit"\nradius = 2.2\nheight = 0.6\n'
-                                             'degrees = 24.0\nduration_s = 1.0'))
+    scene = load_scene(
+        tiny_scene(
+            trajectory='kind = "orbit"\nradius = 2.2\nheight = 0.6\n'
+            "degrees = 24.0\nduration_s = 1.0"
+        )
+    )
     r, traj = Renderer(scene), Trajectory(scene.trajectory)
     frames = []
     folder.mkdir()
@@ -44,7 +47,9 @@ def write_dataset(folder, tiny_scene, views=9):
         img = np.clip(r.render_full(T)["radiance"], 0, 1)
         srgb = np.where(img <= 0.0031308, img * 12.92, 1.055 * img ** (1 / 2.4) - 0.055)
         cv2.imwrite(str(folder / f"r_{k}.png"), (srgb[..., ::-1] * 255 + 0.5).astype(np.uint8))
-        frames.append({"file_path": f"./r_{k}", "transform_matrix": (T @ BLENDER_TO_OPENCV).tolist()})
+        frames.append(
+            {"file_path": f"./r_{k}", "transform_matrix": (T @ BLENDER_TO_OPENCV).tolist()}
+        )
     angle = 2 * np.arctan(48 / 2 / 45.0)
     (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": angle, "frames": frames}))
     return folder / "transforms.json"
@@ -69,8 +74,9 @@ def test_events_from_images(tiny_scene, tmp_path):
         for a in range(len(t) - 1):
             e = ev.time_slice(int(t[a]), int(t[a + 1]))
             px = e.y.astype(np.int64) * 48 + e.x
-            change = (cm.log(rad[a + 1].reshape(-1, 3), 1e-3)
-                      - cm.log(rad[a].reshape(-1, 3), 1e-3))
-            counted = 0.2 * (np.bincount(px[e.p == 1], minlength=48 * 36)
-                             - np.bincount(px[e.p == 0], minlength=48 * 36))
+            change = cm.log(rad[a + 1].reshape(-1, 3), 1e-3) - cm.log(rad[a].reshape(-1, 3), 1e-3)
+            counted = 0.2 * (
+                np.bincount(px[e.p == 1], minlength=48 * 36)
+                - np.bincount(px[e.p == 0], minlength=48 * 36)
+            )
             assert np.abs(change - counted).max() < 0.4
