@@ -99,6 +99,33 @@ def _read(path: Path, scale: float, background: float = 1.0) -> np.ndarray:
     return rgb
 
 
+def _maps(images: list[Path], scale: float) -> dict[str, np.ndarray]:
+    """The dataset's own depth and normal images (NeRF-Synthetic names them
+    ``r_7_depth_0000.png``, ``r_7_normal_0000.png``), when every image has one; values in
+    [0, 1] exactly as stored (NeRF-Synthetic depth is not metric)."""
+    import cv2
+
+    out = {}
+    for kind in ("depth", "normal"):
+        names = [p.with_name(f"{p.stem}_{kind}_0000.png") for p in images]
+        if not names or not all(n.exists() for n in names):
+            continue
+        maps = []
+        for n in names:
+            img = cv2.imread(str(n), cv2.IMREAD_UNCHANGED)
+            if img is None:
+                raise InputError(f"{n}: cannot read the image")
+            if scale != 1.0:
+                img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+            img = img.astype(np.float32) / (65535.0 if img.dtype == np.uint16 else 255.0)
+            if kind == "depth":
+                maps.append(img[..., 0] if img.ndim == 3 else img)
+            else:
+                maps.append(img[..., 2::-1] if img.ndim == 3 else np.repeat(img[..., None], 3, 2))
+        out[f"{kind}_image"] = np.stack(maps)
+    return out
+
+
 def _flow(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     import cv2
 
@@ -227,12 +254,14 @@ def simulate_from_images(
         "K": data.K,
         "threshold_on": pixels.con.reshape(h, w).astype(np.float32),
         "threshold_off": pixels.coff.reshape(h, w).astype(np.float32),
+        **_maps(images, scale),
     }
     if test is not None and len(test.images):
         datasets["test_T_world_cam"] = test.poses
         datasets["test_radiance"] = np.stack(
             [_read(p, scale).astype(np.float32) for p in test.images]
         )
+        datasets.update({f"test_{k}": v for k, v in _maps(test.images, scale).items()})
     write_group(
         output,
         "gt",
@@ -241,6 +270,8 @@ def simulate_from_images(
             "source": "evcap simulate --from-images",
             "images": str(transforms),
             "radiance": "linear RGB from the sRGB images",
+            "depth_image": "the dataset's depth images in [0, 1], as stored (not metric)",
+            "normal_image": "the dataset's normal images, RGB in [0, 1], as stored",
         },
     )
     write_group(

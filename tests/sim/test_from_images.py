@@ -44,9 +44,14 @@ def write_dataset(folder, tiny_scene, views=9):
     folder.mkdir()
     for k in range(views):
         T = traj.pose(k / (views - 1))
-        img = np.clip(r.render_full(T)["radiance"], 0, 1)
+        full = r.render_full(T)
+        img = np.clip(full["radiance"], 0, 1)
         srgb = np.where(img <= 0.0031308, img * 12.92, 1.055 * img ** (1 / 2.4) - 0.055)
         cv2.imwrite(str(folder / f"r_{k}.png"), (srgb[..., ::-1] * 255 + 0.5).astype(np.uint8))
+        depth = np.where(np.isfinite(full["depth"]), full["depth"] / 4.0, 1.0)
+        cv2.imwrite(
+            str(folder / f"r_{k}_depth_0000.png"), (np.clip(depth, 0, 1) * 255).astype(np.uint8)
+        )
         frames.append(
             {"file_path": f"./r_{k}", "transform_matrix": (T @ BLENDER_TO_OPENCV).tolist()}
         )
@@ -64,6 +69,10 @@ def test_events_from_images(tiny_scene, tmp_path):
         g = s.group("gt")
         assert len(g["t"]) == 8  # every 8th image is held out
         assert g["test_radiance"].shape == (1, 36, 48, 3)
+        # the dataset's depth images come along as stored; it has no normal images
+        assert g["depth_image"].shape == (8, 36, 48)
+        assert g["test_depth_image"].shape == (1, 36, 48)
+        assert "normal_image" not in g
         np.testing.assert_allclose(g["K"][0, 0], 45.0, rtol=1e-6)
         # camera poses back in OpenCV axes: looking at the object at the origin
         T = g["T_world_cam"][0]
