@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from evcap.events import Channel, pixel_channels
+from evcap.events import pixel_channels
 from evcap.sim.scene import ApsSpec, ImuSpec
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
@@ -54,6 +54,3 @@ def imu_samples(
     accel = accel + rng.normal(0, spec.accel_noise, accel.shape) if spec.accel_noise else accel
     gyro = gyro + rng.normal(0, spec.gyro_noise, gyro.shape) if spec.gyro_noise else gyro
     return np.round(t * 1e6).astype(np.int64), accel, gyro, np.full(n, 25.0)
-
-
-__all__ = ["Channel", "ChannelMap", "aps_frame", "imu_samples"]

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -56,21 +57,13 @@ class SimulationStats:
     )
 
 
-class _Clock:
-    def __init__(self, stats: SimulationStats) -> None:
-        self.stats = stats
-
-    def __call__(self, name: str):
-        stats = self.stats
-
-        class _Timer:
-            def __enter__(self):
-                self.start = time.perf_counter()
-
-            def __exit__(self, *exc):
-                stats.seconds[name] += time.perf_counter() - self.start
-
-        return _Timer()
+@contextmanager
+def _timed(stats: SimulationStats, name: str) -> Iterator[None]:
+    start = time.perf_counter()
+    try:
+        yield
+    finally:
+        stats.seconds[name] += time.perf_counter() - start
 
 
 class Simulator:
@@ -88,8 +81,7 @@ class Simulator:
         self.rng = np.random.default_rng(self.seed)
         self.progress = progress
         self.stats = SimulationStats()
-        self.clock = _Clock(self.stats)
-        with self.clock("setup"):
+        with _timed(self.stats, "setup"):
             self.renderer = Renderer(scene)
             self.camera = self.renderer.camera
             self.trajectory = Trajectory(scene.trajectory, self.seed)
@@ -113,7 +105,7 @@ class Simulator:
         return self.channels.log(radiance, self.scene.sensor.dark_level, pixels)
 
     def _key(self, t_us: float) -> np.ndarray:
-        with self.clock("render"):
+        with _timed(self.stats, "render"):
             self.stats.key_renders += 1
             r = self.renderer.render(self.trajectory.pose(t_us * 1e-6))
             return self._log(r.radiance)
@@ -152,7 +144,7 @@ class Simulator:
 
     def _render_at(self, pixels: np.ndarray, times_us: np.ndarray) -> np.ndarray:
         """The log signal of ``pixels``, each from the camera at its own time."""
-        with self.clock("render"):
+        with _timed(self.stats, "render"):
             unique, inverse = np.unique(times_us, return_inverse=True)
             poses = self.trajectory.poses(unique * 1e-6)
             rays = self.camera.rays()[pixels]
@@ -194,7 +186,7 @@ class Simulator:
 
     def _interval_events(self, t0: float, t1: float, v0: np.ndarray, v1: np.ndarray):
         extra_px, extra_t, extra_v = self._refine(t0, t1, v0, v1)
-        with self.clock("events"):
+        with _timed(self.stats, "events"):
             n = len(v0)
             px = np.concatenate([np.arange(n), np.arange(n), extra_px])
             t = np.concatenate([np.full(n, t0), np.full(n, t1), extra_t])
@@ -221,7 +213,7 @@ class Simulator:
             t_next = min(t + self._step_us(t), duration_us)
             v_next = self._key(t_next)
             et, epx, ep = self._interval_events(t, t_next, v, v_next)
-            with self.clock("noise"):
+            with _timed(self.stats, "noise"):
                 nt, npx, np_ = self.pixels.noise(t, t_next)
                 et, epx, ep = (
                     np.concatenate([et, nt]),
@@ -246,7 +238,7 @@ class Simulator:
         return stats
 
     def _write_events(self, writer, pending, safe_us, width):
-        with self.clock("write"):
+        with _timed(self.stats, "write"):
             t = np.concatenate([p[0] for p in pending])
             px = np.concatenate([p[1] for p in pending])
             p = np.concatenate([p[2] for p in pending])
@@ -282,7 +274,7 @@ class Simulator:
         a = self.scene.aps
         while starts and starts[0] + a.exposure_us <= t_us:
             start = starts.pop(0)
-            with self.clock("aps"):
+            with _timed(self.stats, "aps"):
                 n = max(1, int(np.ceil(a.exposure_us / 1000)))  # a render per ms: motion blur
                 total = 0
                 for k in range(n):
@@ -312,7 +304,7 @@ class Simulator:
 
     def ground_truth(self) -> tuple[dict, dict]:
         """(/gt datasets, attributes): renders at gt.fps along the path and at held-out views."""
-        with self.clock("gt"):
+        with _timed(self.stats, "gt"):
             g = self.scene.gt
             times = np.arange(0.0, self.scene.trajectory.duration_s + 1e-9, 1.0 / g.fps)
             poses = self.trajectory.poses(times)
