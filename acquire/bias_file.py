@@ -14,22 +14,16 @@ aps_exposure_us = 8000
 from __future__ import annotations
 
 import dataclasses
-import tomllib
 from pathlib import Path
 
 from evcap.acquire import protocol as P
-from evcap.errors import InputError, InputNotFoundError
+from evcap.errors import InputError
+from evcap.toml_file import read_toml
 
 
 def load_bias_file(path: str | Path) -> tuple[dict[str, int], P.Settings]:
     """(bias codes for every bias, settings), the file's values over the vendor defaults."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputNotFoundError(f"{path}: no such biases file")
-    try:
-        doc = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"{path} is not valid TOML: {e}") from None
+    doc = read_toml(path, "biases")
     unknown = set(doc) - {"biases", "settings"}
     if unknown:
         raise InputError(

@@ -80,8 +80,8 @@ def read_transforms(path: Path, scale: float = 1.0) -> PosedImages:
     return PosedImages(images, np.array(poses), np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]))
 
 
-def _read(path: Path, scale: float, background: float = 1.0) -> np.ndarray:
-    """An image as linear RGB (RGBA composited on a gray level ``background``)."""
+def _image(path: Path, scale: float) -> np.ndarray:
+    """An image file as stored (BGR or BGRA or gray), scaled to [0, 1]."""
     import cv2
 
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -89,7 +89,12 @@ def _read(path: Path, scale: float, background: float = 1.0) -> np.ndarray:
         raise InputError(f"{path}: cannot read the image")
     if scale != 1.0:
         img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-    img = img.astype(np.float64) / (65535.0 if img.dtype == np.uint16 else 255.0)
+    return img.astype(np.float64) / (65535.0 if img.dtype == np.uint16 else 255.0)
+
+
+def _read(path: Path, scale: float, background: float = 1.0) -> np.ndarray:
+    """An image as linear RGB (RGBA composited on a gray level ``background``)."""
+    img = _image(path, scale)
     if img.ndim == 2:
         img = np.repeat(img[..., None], 3, axis=2)
     rgb = srgb_to_linear(img[..., 2::-1] if img.shape[2] >= 3 else img)
@@ -103,8 +108,6 @@ def _maps(images: list[Path], scale: float) -> dict[str, np.ndarray]:
     """The dataset's own depth and normal images (NeRF-Synthetic names them
     ``r_7_depth_0000.png``, ``r_7_normal_0000.png``), when every image has one; values in
     [0, 1] exactly as stored (NeRF-Synthetic depth is not metric)."""
-    import cv2
-
     out = {}
     for kind in ("depth", "normal"):
         names = [p.with_name(f"{p.stem}_{kind}_0000.png") for p in images]
@@ -112,12 +115,7 @@ def _maps(images: list[Path], scale: float) -> dict[str, np.ndarray]:
             continue
         maps = []
         for n in names:
-            img = cv2.imread(str(n), cv2.IMREAD_UNCHANGED)
-            if img is None:
-                raise InputError(f"{n}: cannot read the image")
-            if scale != 1.0:
-                img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-            img = img.astype(np.float32) / (65535.0 if img.dtype == np.uint16 else 255.0)
+            img = _image(n, scale).astype(np.float32)
             if kind == "depth":
                 maps.append(img[..., 0] if img.ndim == 3 else img)
             else:

@@ -9,12 +9,12 @@ scene asks for them. Errors name the file and the key.
 from __future__ import annotations
 
 import os
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from evcap.errors import InputError, InputNotFoundError
 from evcap.events import check_color_filter
+from evcap.toml_file import read_toml
 
 CALIBRATIONS = (
     Path(os.environ.get("EVCAP_SHARED", Path(__file__).resolve().parents[2] / "shared"))
@@ -249,12 +249,7 @@ OBJECT_KINDS = ("sphere", "box", "plane", "mesh", "charuco")
 def load_scene(path: str | os.PathLike) -> Scene:
     """Read and check a scene file."""
     path = Path(path)
-    if not path.is_file():
-        raise InputNotFoundError(f"{path}: no such scene file")
-    try:
-        doc = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"{path} is not valid TOML: {e}") from None
+    doc = read_toml(path, "scene")
     base = path.parent
     top = _Table(doc, str(path))
     scene = top.table("scene")
