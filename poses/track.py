@@ -1,0 +1,119 @@
+"""Camera poses over time: a timestamped track, interpolated at any time (position linearly,
+rotation by slerp). Times are int64 microseconds; only the fraction between two poses is a
+float, so that long recordings keep their precision."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from evcap.errors import InputError
+from evcap.session import Session
+
+
+def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
+    """[..., 3, 3] rotation matrices to unit quaternions [..., 4] (w, x, y, z), w >= 0."""
+    R = np.asarray(R, np.float64)
+    m = R.reshape(-1, 3, 3)
+    # Shepperd: each row of `cand` is 4 s times the quaternion, where s is one of its four
+    # components; take the row whose s is largest, for precision near 180 degrees
+    d0, d1, d2 = m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]
+    a, b, c = m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]
+    e, f, g = m[:, 0, 1] + m[:, 1, 0], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1]
+    sq = np.stack([1 + d0 + d1 + d2, 1 + d0 - d1 - d2, 1 - d0 + d1 - d2, 1 - d0 - d1 + d2], 1)
+    cand = np.stack(
+        [
+            np.stack([sq[:, 0], a, b, c], 1),
+            np.stack([a, sq[:, 1], e, f], 1),
+            np.stack([b, e, sq[:, 2], g], 1),
+            np.stack([c, f, g, sq[:, 3]], 1),
+        ],
+        1,
+    )
+    q = cand[np.arange(len(m)), sq.argmax(1)]
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q[q[:, 0] < 0] *= -1
+    return q.reshape(R.shape[:-2] + (4,))
+
+
+def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
+    q = np.asarray(q, np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def slerp(q0: np.ndarray, q1: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Spherical interpolation between unit quaternions [..., 4] by fractions s [...]."""
+    dot = (q0 * q1).sum(-1)
+    q1 = np.where(dot[..., None] < 0, -q1, q1)
+    dot = np.abs(dot).clip(max=1.0)
+    theta = np.arccos(dot)
+    sin = np.sin(theta)
+    small = sin < 1e-9
+    a = np.where(small, 1 - s, np.sin((1 - s) * theta) / np.where(small, 1, sin))
+    b = np.where(small, s, np.sin(s * theta) / np.where(small, 1, sin))
+    q = a[..., None] * q0 + b[..., None] * q1
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+@dataclass
+class PoseTrack:
+    t: np.ndarray  # [N] int64 microseconds, increasing
+    T_world_cam: np.ndarray  # [N, 4, 4] camera-to-world, OpenCV camera axes
+
+    def __post_init__(self) -> None:
+        self.t = np.asarray(self.t, np.int64)
+        self.T_world_cam = np.asarray(self.T_world_cam, np.float64)
+        if self.T_world_cam.shape != (len(self.t), 4, 4):
+            raise InputError(
+                f"poses: {len(self.t)} times but transforms of shape {self.T_world_cam.shape}"
+            )
+        if len(self.t) < 2:
+            raise InputError("poses: at least two timestamped poses are needed")
+        if np.any(np.diff(self.t) <= 0):
+            raise InputError("poses: times must increase")
+        if not np.isfinite(self.T_world_cam).all():
+            raise InputError("poses: transforms hold NaN or infinity")
+        self._q = rotmat_to_quat(self.T_world_cam[:, :3, :3])
+
+    @classmethod
+    def from_session(cls, session: Session) -> PoseTrack:
+        if "poses" not in session.groups:
+            raise InputError(
+                f"{session.path} has no camera poses (/poses); run `evcap poses` on it first"
+            )
+        g = session.group("poses")
+        return cls(g["t"][:], g["T_world_cam"][:])
+
+    @property
+    def start(self) -> int:
+        return int(self.t[0])
+
+    @property
+    def end(self) -> int:
+        return int(self.t[-1])
+
+    def at(self, t_us: np.ndarray | int) -> np.ndarray:
+        """Camera-to-world transforms [..., 4, 4] at the given times (inside the track)."""
+        t_us = np.asarray(t_us, np.int64)
+        if np.any(t_us < self.t[0]) or np.any(t_us > self.t[-1]):
+            raise InputError(
+                f"poses cover {self.t[0]}..{self.t[-1]} us; asked for a time outside them"
+            )
+        i = np.clip(np.searchsorted(self.t, t_us, side="right") - 1, 0, len(self.t) - 2)
+        s = (t_us - self.t[i]).astype(np.float64) / (self.t[i + 1] - self.t[i]).astype(np.float64)
+        out = np.zeros(t_us.shape + (4, 4))
+        out[..., 3, 3] = 1
+        p0, p1 = self.T_world_cam[i, :3, 3], self.T_world_cam[i + 1, :3, 3]
+        out[..., :3, 3] = p0 + s[..., None] * (p1 - p0)
+        out[..., :3, :3] = quat_to_rotmat(slerp(self._q[i], self._q[i + 1], s))
+        return out

@@ -1,0 +1,105 @@
+"""Settings of the reconstruction, one preset per use (tiny: tests; fast: a laptop CPU in minutes;
+paper: the method's reference run, for a GPU)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from evcap.errors import InputError
+
+
+@dataclass
+class RadianceConfig:
+    """Stage I: the event-supervised Gaussian radiance field."""
+
+    iterations: int = 3000  # optimisation steps
+    resolution: float = 0.5  # render scale, relative to the sensor (1 = full)
+    sh_degree: int = 1  # view dependence of the Gaussians' radiance (0..3)
+    init_gaussians: int = 20_000  # random points inside the volume the cameras look at
+    max_gaussians: int = 200_000  # densification stops growing beyond this
+    # events: the time grid the windows are aligned to, and the window lengths drawn
+    frame_interval_ms: float = 5.0  # one rendered frame every this many ms at most
+    max_frames: int = 4000  # the grid is made coarser for recordings longer than this
+    max_window_frames: int = 10  # a window spans 1..this many frame intervals
+    windows_per_step: int = 1  # windows (each two renders) per optimisation step
+    log_eps: float = 1e-3  # added to the radiance before the log (the sensor's dark level)
+    # a pixel without events: "target" (its change is 0) or "bound" (|change| < C)
+    zero_events: str = "target"
+    silent_weight: float = 0.1  # share of the event loss for pixels without events (EventNeRF)
+    # loss weights (method.md): L = L_event + 0.1 L_GW + 0.05 L_normal
+    anchor_weight: float = 0.1
+    anchor_level: float = 0.5  # g: the mean rendered brightness
+    normal_weight: float = 0.05
+    normal_from: float = 0.0  # fraction of the run after which the normal loss starts
+    # Adam learning rates; positions scale with the scene's extent and decay to lr_means_final
+    lr_means: float = 1.6e-4
+    lr_means_final: float = 1.6e-6
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_opacity: float = 0.025
+    lr_sh: float = 2.5e-3  # degree-0 coefficients; higher bands use a twentieth of it
+    lr_background: float = 1e-2
+    # densification (3DGS): from/until are fractions of the run
+    densify_from: float = 0.05
+    densify_until: float = 0.6
+    densify_every: int = 100
+    grad_threshold: float = 2e-4  # mean screen-space gradient (NDC units) that densifies
+    percent_dense: float = 0.01  # clone below, split above this fraction of the scene extent
+    min_opacity: float = 0.005  # pruned below
+    opacity_reset_every: int = 0  # steps; 0: never (resets upset the event loss on short runs)
+    background_sh_degree: int = 3  # the distant background, as a function of direction
+    eval_every: int = 0  # steps between held-out evaluations in the log (0: only at the end)
+
+
+PRESETS: dict[str, RadianceConfig] = {
+    "tiny": RadianceConfig(
+        iterations=150,
+        resolution=0.25,
+        sh_degree=0,
+        init_gaussians=1500,
+        max_gaussians=4000,
+        densify_every=50,
+        background_sh_degree=1,
+    ),
+    "fast": RadianceConfig(),
+    "paper": RadianceConfig(
+        iterations=30_000,
+        resolution=1.0,
+        sh_degree=3,
+        init_gaussians=100_000,
+        max_gaussians=1_000_000,
+        max_window_frames=50,
+        densify_from=500 / 30_000,
+        densify_until=15_000 / 30_000,
+        opacity_reset_every=10_000,
+    ),
+}
+
+
+def preset(name: str, **overrides: object) -> RadianceConfig:
+    """The named preset with some fields replaced (None values are ignored)."""
+    if name not in PRESETS:
+        raise InputError(f"unknown preset {name!r}; expected one of {', '.join(PRESETS)}")
+    config = dataclasses.replace(
+        PRESETS[name], **{k: v for k, v in overrides.items() if v is not None}
+    )
+    check(config)
+    return config
+
+
+def check(config: RadianceConfig) -> None:
+    if config.iterations < 1:
+        raise InputError("iterations must be at least 1")
+    if not 0 < config.resolution <= 4:
+        raise InputError("resolution is a render scale in (0, 4]; 1 is the sensor's")
+    if not 0 <= config.sh_degree <= 3:
+        raise InputError("sh_degree must be 0..3")
+    if config.zero_events not in ("target", "bound"):
+        raise InputError('zero_events must be "target" or "bound"')
+    if config.frame_interval_ms <= 0 or config.max_window_frames < 1:
+        raise InputError("frame_interval_ms must be > 0 and max_window_frames >= 1")
+
+
+def to_dict(config: RadianceConfig) -> dict:
+    return dataclasses.asdict(config)

@@ -1,0 +1,128 @@
+"""The 3D Gaussians of the radiance field, their optimiser, and the learnable background."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from evcap.recon.config import RadianceConfig
+from evcap.recon.sh import C0, eval_sh
+
+PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")
+# radiance = softplus(SH value): positive (its log is finite), linear for bright values
+START_VALUE = math.log(math.expm1(0.5))  # softplus(START_VALUE) = 0.5, the anchor level
+
+
+class Gaussians(torch.nn.Module):
+    def __init__(
+        self,
+        means: torch.Tensor,
+        log_scales: torch.Tensor,
+        quats: torch.Tensor,
+        opacity_logits: torch.Tensor,
+        sh_dc: torch.Tensor,
+        sh_rest: torch.Tensor,
+    ) -> None:
+        super().__init__()
+        self.means = torch.nn.Parameter(means)
+        self.log_scales = torch.nn.Parameter(log_scales)
+        self.quats = torch.nn.Parameter(quats)
+        self.opacity_logits = torch.nn.Parameter(opacity_logits)
+        self.sh_dc = torch.nn.Parameter(sh_dc)  # [N, 1, 3]
+        self.sh_rest = torch.nn.Parameter(sh_rest)  # [N, (degree + 1)^2 - 1, 3]
+
+    @classmethod
+    def random(cls, points: np.ndarray, sh_degree: int, generator: torch.Generator) -> Gaussians:
+        """Gaussians at the given points, sized by the distance to their neighbours, mid-gray
+        (with a little noise), half opaque, randomly turned."""
+        means = torch.as_tensor(points, dtype=torch.float32)
+        n = len(means)
+        scale = _neighbour_distance(means).clamp(min=1e-7)
+        k = (sh_degree + 1) ** 2
+        dc = START_VALUE / C0 + 0.1 * torch.randn(n, 1, 3, generator=generator)
+        return cls(
+            means,
+            torch.log(scale)[:, None].repeat(1, 3),
+            torch.randn(n, 4, generator=generator),
+            torch.full((n,), math.log(0.1 / 0.9)),
+            dc,
+            torch.zeros(n, k - 1, 3),
+        )
+
+    def __len__(self) -> int:
+        return len(self.means)
+
+    @property
+    def sh_degree(self) -> int:
+        return int(math.isqrt(self.sh_rest.shape[1] + 1)) - 1
+
+    @property
+    def scales(self) -> torch.Tensor:
+        return torch.exp(self.log_scales)
+
+    @property
+    def opacities(self) -> torch.Tensor:
+        return torch.sigmoid(self.opacity_logits)
+
+    def radiance(self, camera_center: torch.Tensor, degree: int | None = None) -> torch.Tensor:
+        """[N, 3] linear radiance towards a camera at ``camera_center``."""
+        degree = self.sh_degree if degree is None else min(degree, self.sh_degree)
+        if degree == 0:
+            return F.softplus(C0 * self.sh_dc[:, 0])
+        dirs = F.normalize(self.means.detach() - camera_center, dim=1)
+        coeffs = torch.cat([self.sh_dc, self.sh_rest], 1)
+        return F.softplus(eval_sh(degree, coeffs, dirs))
+
+
+def _neighbour_distance(points: torch.Tensor, k: int = 3, chunk: int = 2048) -> torch.Tensor:
+    """Root mean square distance of each point to its k nearest neighbours (3DGS's start size)."""
+    out = []
+    k = min(k, len(points) - 1)
+    if k < 1:
+        return torch.ones(len(points))
+    for i in range(0, len(points), chunk):
+        d2 = torch.cdist(points[i : i + chunk], points).square()
+        near = torch.topk(d2, k + 1, largest=False).values[:, 1:]
+        out.append(near.mean(1).sqrt())
+    return torch.cat(out)
+
+
+class Background(torch.nn.Module):
+    """The distant background: radiance as a function of the world direction (spherical
+    harmonics through a softplus), seen wherever the Gaussians leave light through."""
+
+    def __init__(self, degree: int) -> None:
+        super().__init__()
+        coeffs = torch.zeros((degree + 1) ** 2, 3)
+        coeffs[0] = START_VALUE / C0
+        self.degree = degree
+        self.coeffs = torch.nn.Parameter(coeffs)
+
+    def forward(self, dirs: torch.Tensor) -> torch.Tensor:
+        """Radiance [..., 3] in world directions [..., 3]."""
+        return F.softplus(eval_sh(self.degree, self.coeffs, dirs))
+
+
+def make_optimizer(
+    model: Gaussians, background: Background, config: RadianceConfig, extent: float
+) -> torch.optim.Adam:
+    groups = [
+        {"params": [model.means], "lr": config.lr_means * extent, "name": "means"},
+        {"params": [model.log_scales], "lr": config.lr_scales, "name": "log_scales"},
+        {"params": [model.quats], "lr": config.lr_quats, "name": "quats"},
+        {"params": [model.opacity_logits], "lr": config.lr_opacity, "name": "opacity_logits"},
+        {"params": [model.sh_dc], "lr": config.lr_sh, "name": "sh_dc"},
+        {"params": [model.sh_rest], "lr": config.lr_sh / 20, "name": "sh_rest"},
+        {"params": [background.coeffs], "lr": config.lr_background, "name": "background"},
+    ]
+    return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+
+
+def means_lr(config: RadianceConfig, extent: float, step: int) -> float:
+    """Exponential decay of the positions' learning rate over the run (3DGS)."""
+    s = min(step / max(config.iterations, 1), 1.0)
+    a, b = config.lr_means * extent, config.lr_means_final * extent
+    return math.exp((1 - s) * math.log(a) + s * math.log(b))

@@ -1,0 +1,89 @@
+"""The losses of stage I (method.md): events, brightness anchor, normal consistency."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def log_radiance(radiance: torch.Tensor, eps: float) -> torch.Tensor:
+    """log(L + eps): finite for black (and for the tiny negatives of interpolation)."""
+    return torch.log(radiance.clamp(min=0) + eps)
+
+
+def event_loss(
+    predicted: torch.Tensor,
+    measured: torch.Tensor,
+    counts: torch.Tensor,
+    threshold_on: torch.Tensor,
+    threshold_off: torch.Tensor,
+    mask: torch.Tensor,
+    zero_events: str = "target",
+    silent_weight: float | None = None,
+) -> torch.Tensor:
+    """Mean L1 between the rendered log change and C_on ON - C_off OFF, over ``mask``.
+
+    Most pixels of a window have no event; left to a plain mean they teach only "nothing
+    changes", whose cheapest answer is an empty scene. With ``silent_weight`` s, the pixels
+    with events and those without are averaged apart and weighted 1 - s and s (EventNeRF
+    draws 90 % of its rays from pixels with events: s = 0.1).
+
+    With ``zero_events="bound"``, a pixel without events is not told "no change" but only
+    -C_off < change < C_on (a hinge): what a silent pixel really says.
+    """
+    err = (predicted - measured).abs()
+    if zero_events == "bound":
+        silent = counts == 0
+        inside = F.relu(predicted - threshold_on) + F.relu(-predicted - threshold_off)
+        err = torch.where(silent, inside, err)
+    m = mask.to(err.dtype)
+    if silent_weight is None:
+        return (err * m).sum() / m.sum().clamp(min=1)
+    loud = m * (counts > 0).to(err.dtype)
+    quiet = m - loud
+    return (1 - silent_weight) * (err * loud).sum() / loud.sum().clamp(min=1) + silent_weight * (
+        err * quiet
+    ).sum() / quiet.sum().clamp(min=1)
+
+
+def anchor_loss(radiance: torch.Tensor, level: float) -> torch.Tensor:
+    """(mean of the rendered pixels' (R + G + B) / 3 - g)^2: fixes the overall brightness."""
+    return (radiance.mean() - level) ** 2
+
+
+def depth_normals(depth: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Normals [H, W, 3] (camera frame, facing the camera) from a depth map's local gradients,
+    and where they are defined (interior pixels with positive depth around them)."""
+    H, W = depth.shape
+    ys, xs = torch.meshgrid(
+        torch.arange(H, dtype=depth.dtype, device=depth.device),
+        torch.arange(W, dtype=depth.dtype, device=depth.device),
+        indexing="ij",
+    )
+    x = (xs - K[0, 2]) / K[0, 0] * depth
+    y = (ys - K[1, 2]) / K[1, 1] * depth
+    p = torch.stack([x, y, depth], -1)
+    dx = p[1:-1, 2:] - p[1:-1, :-2]
+    dy = p[2:, 1:-1] - p[:-2, 1:-1]
+    n = torch.cross(dx, dy, dim=-1)
+    n = F.normalize(n, dim=-1, eps=1e-12)
+    n = torch.where((n * p[1:-1, 1:-1]).sum(-1, keepdim=True) > 0, -n, n)
+    valid = torch.zeros(H, W, dtype=torch.bool, device=depth.device)
+    d = depth > 0
+    valid[1:-1, 1:-1] = d[1:-1, 1:-1] & d[1:-1, 2:] & d[1:-1, :-2] & d[2:, 1:-1] & d[:-2, 1:-1]
+    out = torch.zeros(H, W, 3, dtype=depth.dtype, device=depth.device)
+    out[1:-1, 1:-1] = n
+    return out, valid
+
+
+def normal_loss(
+    rendered: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, K: torch.Tensor
+) -> torch.Tensor:
+    """Mean |n - n_d|_1 between the rendered normals and the depth's, where the render is
+    mostly opaque."""
+    n_d, valid = depth_normals(depth, K)
+    mask = valid & (alpha.detach() > 0.5)
+    n = F.normalize(rendered, dim=-1, eps=1e-12)
+    err = (n - n_d).abs().sum(-1)
+    m = mask.to(err.dtype)
+    return (err * m).sum() / m.sum().clamp(min=1)

@@ -1,0 +1,98 @@
+"""Image and geometry metrics against a simulated session's ground truth.
+
+Images are compared as displayed: linear radiance clipped to [0, 1], sRGB-encoded. Event-based
+reconstructions recover radiance only up to a gain per color channel, so papers on events
+(EventNeRF, Robust e-NeRF) also report metrics after a per-channel affine color correction;
+here it is fitted by least squares on linear radiance over all test views at once, and the
+``_cc`` metrics are taken after it. Both are reported.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+
+def srgb(linear: np.ndarray) -> np.ndarray:
+    x = np.clip(linear, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
+    return 10 * math.log10(1.0 / max(mse, 1e-12))
+
+
+def ssim(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean SSIM (11 x 11 Gaussian window) of images [N, H, W, C] in [0, 1]."""
+    from kornia.metrics import ssim as kornia_ssim
+
+    ta = torch.as_tensor(np.asarray(a, np.float32)).permute(0, 3, 1, 2)
+    tb = torch.as_tensor(np.asarray(b, np.float32)).permute(0, 3, 1, 2)
+    return float(kornia_ssim(ta, tb, 11, max_val=1.0).mean())
+
+
+def fit_color_correction(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """[C, 2] gain and offset per channel that best map ``pred`` onto ``gt`` (least squares)."""
+    p = pred.reshape(-1, pred.shape[-1]).astype(np.float64)
+    g = gt.reshape(-1, gt.shape[-1]).astype(np.float64)
+    out = np.zeros((p.shape[1], 2))
+    for c in range(p.shape[1]):
+        A = np.stack([p[:, c], np.ones(len(p))], 1)
+        out[c] = np.linalg.lstsq(A, g[:, c], rcond=None)[0]
+    return out
+
+
+def image_metrics(pred: np.ndarray, gt: np.ndarray, prefix: str) -> dict[str, float]:
+    """PSNR and SSIM, raw and color-corrected, of linear images [N, H, W, 3]."""
+    cc = fit_color_correction(pred, gt)
+    corrected = pred * cc[:, 0] + cc[:, 1]
+    a, b, c = srgb(pred), srgb(gt), srgb(corrected)
+    return {
+        f"{prefix}_psnr": psnr(a, b),
+        f"{prefix}_ssim": ssim(a, b),
+        f"{prefix}_psnr_cc": psnr(c, b),
+        f"{prefix}_ssim_cc": ssim(c, b),
+    }
+
+
+def depth_abs_err(pred: np.ndarray, gt: np.ndarray) -> float:
+    """Mean |depth error| (scene units) where the truth has a surface."""
+    m = gt > 0
+    return float(np.abs(pred[m] - gt[m]).mean()) if m.any() else float("nan")
+
+
+def normal_mae_deg(pred: np.ndarray, gt: np.ndarray) -> float:
+    """Mean angle (degrees) between unit normals where the truth has a surface; a missing
+    prediction (zero vector) counts as 90 degrees."""
+    m = np.linalg.norm(gt, axis=-1) > 0.5
+    if not m.any():
+        return float("nan")
+    p = pred[m] / np.maximum(np.linalg.norm(pred[m], axis=-1, keepdims=True), 1e-12)
+    g = gt[m] / np.linalg.norm(gt[m], axis=-1, keepdims=True)
+    cos = np.clip((p * g).sum(-1), -1.0, 1.0)
+    return float(np.degrees(np.arccos(cos)).mean())
+
+
+def lpips_if_available(pred: np.ndarray, gt: np.ndarray) -> float | None:
+    """LPIPS (AlexNet) when the lpips package and all its weights are already on this machine;
+    None otherwise (weights are never downloaded)."""
+    try:
+        import lpips  # noqa: F401
+        from torch.hub import get_dir
+    except Exception:  # noqa: BLE001  missing, or broken by a torchvision that cannot load
+        return None
+    import os
+
+    backbone = os.path.join(get_dir(), "checkpoints", "alexnet-owt-7be5be79.pth")
+    if not os.path.exists(backbone):
+        return None
+    import lpips as lp
+
+    model = lp.LPIPS(net="alex", verbose=False)
+    ta = torch.as_tensor(np.asarray(pred, np.float32)).permute(0, 3, 1, 2) * 2 - 1
+    tb = torch.as_tensor(np.asarray(gt, np.float32)).permute(0, 3, 1, 2) * 2 - 1
+    with torch.no_grad():
+        return float(model(ta, tb).mean())

@@ -1,0 +1,120 @@
+"""Differentiable rendering of 3D Gaussians: one interface, two backends.
+
+``torch``: pure PyTorch (recon/_raster_torch.py), runs everywhere; the default on the CPU.
+``gsplat``: gsplat's CUDA kernels (recon/_raster_gsplat.py), used on a CUDA device when gsplat
+is installed. Both take the same Gaussians and camera and return the same maps; they are
+tested against each other where a GPU is present, and the PyTorch one against a per-pixel
+reference (recon/_raster_reference.py) everywhere.
+
+Conventions: the camera is OpenCV's (x right, y down, z forward), ``viewmat`` maps world to
+camera, ``K`` has the pixel centres at integer coordinates (as OpenCV calibrations do).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from evcap.errors import InputError
+
+BACKENDS = ("torch", "gsplat")
+
+
+@dataclass
+class Camera:
+    viewmat: torch.Tensor  # [4, 4] world to camera
+    K: torch.Tensor  # [3, 3]
+    width: int
+    height: int
+
+    @property
+    def center(self) -> torch.Tensor:
+        """The camera centre in world coordinates."""
+        R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
+        return -R.T @ t
+
+
+@dataclass
+class Render:
+    color: torch.Tensor  # [H, W, D] alpha-composited features, background added
+    depth: torch.Tensor  # [H, W] expected camera z (sum w z / sum w); 0 where alpha is 0
+    alpha: torch.Tensor  # [H, W] accumulated opacity
+    normal: torch.Tensor  # [H, W, 3] composited unit normals of the Gaussians, camera frame
+    means2d: torch.Tensor  # [..., N, 2] projected centres, pixels; their .grad drives densification
+    visible: torch.Tensor  # [N] bool, the Gaussians that touched a pixel
+
+
+def gaussian_normals(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+    """World-frame normal of each Gaussian: the axis of its smallest scale (unsigned)."""
+    R = quat_to_rotmat(quats)
+    axis = scales.argmin(dim=1)
+    return torch.gather(R, 2, axis[:, None, None].expand(-1, 3, 1)).squeeze(2)
+
+
+def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
+    """[N, 4] quaternions (w, x, y, z; any norm) to [N, 3, 3] rotation matrices."""
+    q = q / q.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    w, x, y, z = q.unbind(1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
+        ],
+        dim=1,
+    ).reshape(-1, 3, 3)
+
+
+def camera_normals(
+    quats: torch.Tensor, scales: torch.Tensor, means: torch.Tensor, camera: Camera
+) -> torch.Tensor:
+    """Each Gaussian's normal in the camera frame, turned to face the camera."""
+    R = camera.viewmat[:3, :3]
+    n = gaussian_normals(quats, scales) @ R.T
+    p = means @ R.T + camera.viewmat[:3, 3]
+    flip = (n * p).sum(1, keepdim=True) > 0
+    return torch.where(flip, -n, n)
+
+
+def default_backend(device: torch.device | str) -> str:
+    """gsplat on a CUDA device when it imports and works, else torch."""
+    if torch.device(device).type != "cuda":
+        return "torch"
+    from evcap.recon import _raster_gsplat
+
+    return "gsplat" if _raster_gsplat.available() else "torch"
+
+
+def rasterize(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    features: torch.Tensor,
+    camera: Camera,
+    *,
+    background: torch.Tensor | None = None,
+    backend: str = "torch",
+    near: float = 0.01,
+) -> Render:
+    """Render N Gaussians (means [N, 3], quats [N, 4], scales [N, 3] (not log), opacities [N]
+    in (0, 1), features [N, D] (colors, or any per-Gaussian values)) into ``camera``.
+    ``background`` [H, W, D] or [D] is added where the Gaussians leave light through."""
+    if backend == "torch":
+        from evcap.recon._raster_torch import rasterize_torch as impl
+    elif backend == "gsplat":
+        from evcap.recon._raster_gsplat import rasterize_gsplat as impl
+    else:
+        raise InputError(f"unknown rasterizer backend {backend!r}; expected one of {BACKENDS}")
+    normals = camera_normals(quats, scales, means, camera)
+    out = impl(means, quats, scales, opacities, features, normals, camera, near)
+    if background is not None:
+        out.color = out.color + (1 - out.alpha)[..., None] * background
+    return out
