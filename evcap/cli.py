@@ -248,6 +248,39 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_reconstruct(args: argparse.Namespace) -> int:
+    from evcap._progress import progress_bar
+    from evcap.recon.reconstruct import reconstruct
+
+    with progress_bar(f"reconstructing ({args.preset})") as update:
+        result = reconstruct(
+            args.session,
+            args.output,
+            preset=args.preset,
+            stage=args.stage,
+            device=args.device,
+            resolution=args.resolution,
+            iterations=args.iterations,
+            seed=args.seed,
+            zero_events=args.zero_events,
+            overwrite=args.force,
+            progress=update,
+        )
+    figures = "  ".join(
+        f"{k} {result[k]:.3f}"
+        for k in ("render_psnr_cc", "render_ssim_cc", "depth_abs_err", "normal_mae_deg")
+        if result.get(k) is not None
+    )
+    stopped = " (interrupted: what was learnt so far)" if result["interrupted"] else ""
+    print(
+        f"{args.output}: {result['gaussians']:,} Gaussians after {result['iterations']:,} steps "
+        f"in {result['seconds']:.0f} s on {result['device']}{stopped}"
+    )
+    if figures:
+        print(f"held-out views: {figures}")
+    return 0
+
+
 def _capture_arguments(p: argparse.ArgumentParser) -> None:
     """The options of a running camera, shared by record and monitor."""
     p.add_argument("--device", default="usb", help=DEVICE_HELP)
@@ -363,6 +396,37 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("-f", "--force", action="store_true", help="overwrite the output file")
     p.set_defaults(run=_cmd_simulate)
+
+    p = sub.add_parser(
+        "reconstruct",
+        help="recover the scene from a session's events: Gaussians, renders, metrics",
+        description="Fit 3D Gaussians to a session's events (its calibration and poses are "
+        "used) and write OUT/gaussians.ply, OUT/renders/, OUT/checkpoint/, OUT/config.toml "
+        "and OUT/metrics.json (with the ground truth of a simulated session).",
+    )
+    p.add_argument("session", help="the session file (.h5), with /calibration and /poses")
+    p.add_argument("-o", "--output", required=True, metavar="OUT", help="the folder to write")
+    p.add_argument("--stage", default="radiance", choices=["radiance"], help="what to fit")
+    p.add_argument(
+        "--preset",
+        default="fast",
+        choices=["tiny", "fast", "paper"],
+        help="tiny: a smoke test; fast: minutes on a laptop CPU (default); paper: the method's "
+        "reference run, for a GPU",
+    )
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="default: cpu")
+    p.add_argument(
+        "--resolution", type=float, metavar="R", help="render scale relative to the sensor"
+    )
+    p.add_argument("--iterations", type=int, metavar="N", help="optimisation steps")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument(
+        "--zero-events",
+        choices=["target", "bound"],
+        help="a pixel without events means no change (target) or |change| < C (bound)",
+    )
+    p.add_argument("-f", "--force", action="store_true", help="overwrite a reconstruction in OUT")
+    p.set_defaults(run=_cmd_reconstruct)
     return parser
 
 

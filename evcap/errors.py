@@ -58,3 +58,7 @@ class FirmwareError(DeviceError):
 
 class DeviceLostError(DeviceError):
     """The camera vanished (unplugged) while in use."""
+
+
+class NumericalError(EvcapError, FloatingPointError):
+    """An optimisation stopped making finite numbers (NaN or infinity)."""

@@ -18,11 +18,12 @@ class RadianceConfig:
     sh_degree: int = 1  # view dependence of the Gaussians' radiance (0..3)
     init_gaussians: int = 20_000  # random points inside the volume the cameras look at
     max_gaussians: int = 200_000  # densification stops growing beyond this
+    init_size_px: float = 1.0  # largest starting size (sigma), in render pixels
     # events: the time grid the windows are aligned to, and the window lengths drawn
     frame_interval_ms: float = 5.0  # one rendered frame every this many ms at most
     max_frames: int = 4000  # the grid is made coarser for recordings longer than this
     max_window_frames: int = 10  # a window spans 1..this many frame intervals
-    windows_per_step: int = 1  # windows (each two renders) per optimisation step
+    views_per_step: int = 3  # renders per step; every two of them make a window
     log_eps: float = 1e-3  # added to the radiance before the log (the sensor's dark level)
     # a pixel without events: "target" (its change is 0) or "bound" (|change| < C)
     zero_events: str = "target"
@@ -32,6 +33,9 @@ class RadianceConfig:
     anchor_level: float = 0.5  # g: the mean rendered brightness
     normal_weight: float = 0.05
     normal_from: float = 0.0  # fraction of the run after which the normal loss starts
+    # mean opacity, as gsplat's opacity_reg: where the events say nothing (a plain background,
+    # the inside of a patch), the fewest Gaussians that explain them
+    opacity_reg: float = 0.01
     # Adam learning rates; positions scale with the scene's extent and decay to lr_means_final
     lr_means: float = 1.6e-4
     lr_means_final: float = 1.6e-6
@@ -99,6 +103,8 @@ def check(config: RadianceConfig) -> None:
         raise InputError('zero_events must be "target" or "bound"')
     if config.frame_interval_ms <= 0 or config.max_window_frames < 1:
         raise InputError("frame_interval_ms must be > 0 and max_window_frames >= 1")
+    if config.views_per_step < 2:
+        raise InputError("views_per_step must be at least 2 (a window needs two views)")
 
 
 def to_dict(config: RadianceConfig) -> dict:

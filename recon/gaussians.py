@@ -35,12 +35,18 @@ class Gaussians(torch.nn.Module):
         self.sh_rest = torch.nn.Parameter(sh_rest)  # [N, (degree + 1)^2 - 1, 3]
 
     @classmethod
-    def random(cls, points: np.ndarray, sh_degree: int, generator: torch.Generator) -> Gaussians:
-        """Gaussians at the given points, sized by the distance to their neighbours, mid-gray
-        (with a little noise), half opaque, randomly turned."""
+    def random(
+        cls,
+        points: np.ndarray,
+        sh_degree: int,
+        generator: torch.Generator,
+        max_scale: float = math.inf,
+    ) -> Gaussians:
+        """Gaussians at the given points, sized by the distance to their neighbours (at most
+        ``max_scale``), mid-gray (with a little noise), faint, randomly turned."""
         means = torch.as_tensor(points, dtype=torch.float32)
         n = len(means)
-        scale = _neighbour_distance(means).clamp(min=1e-7)
+        scale = _neighbour_distance(means).clamp(min=1e-7, max=max_scale)
         k = (sh_degree + 1) ** 2
         dc = START_VALUE / C0 + 0.1 * torch.randn(n, 1, 3, generator=generator)
         return cls(

@@ -75,7 +75,7 @@ class SensorOptics:
 
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
         if self.distortion_model == "radtan":
-            out = cv2.undistortPointsIter(pts, self.K, self.distortion, None, None, crit)
+            out = cv2.undistortPoints(pts, self.K, self.distortion, criteria=crit)
         else:
             out = cv2.fisheye.undistortPoints(pts, self.K, self.distortion[:4], criteria=crit)
         return out[:, 0]

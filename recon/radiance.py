@@ -15,7 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from evcap.errors import InputError
+from evcap.errors import InputError, NumericalError
 from evcap.poses.track import PoseTrack
 from evcap.recon.config import RadianceConfig
 from evcap.recon.densify import Densifier
@@ -118,6 +118,13 @@ class StepLog:
     seconds: float
 
 
+@dataclass
+class Fit:
+    field: RadianceField
+    log: list[StepLog]  # every 10 steps
+    interrupted: bool
+
+
 def new_field(
     data: TrainingData, config: RadianceConfig, seed: int, device: str, backend: str
 ) -> RadianceField:
@@ -126,7 +133,13 @@ def new_field(
     o = data.optics
     points = sample_points(data.volume, poses, o.K, o.width, o.height, config.init_gaussians, rng)
     g = torch.Generator().manual_seed(seed)
-    gaussians = Gaussians.random(points, config.sh_degree, g)
+    # no larger than init_size_px render pixels at the volume's distance: random points fill
+    # the whole view, and large ones would overlap by hundreds at every pixel
+    distance = np.median(np.linalg.norm(poses[:, :3, 3] - data.volume.center, axis=1))
+    if not data.volume.converging:
+        distance = np.sqrt(data.volume.near * data.volume.far)
+    footprint = distance / float(data.grid.K[0, 0])
+    gaussians = Gaussians.random(points, config.sh_degree, g, config.init_size_px * footprint)
     return RadianceField(gaussians, Background(config.background_sh_degree), backend).to(device)
 
 
@@ -139,92 +152,109 @@ def train_radiance(
     backend: str = "torch",
     progress: Callable[[int, int, str], None] | None = None,
     clock: Callable[[], float] = time.perf_counter,
-) -> tuple[RadianceField, list[StepLog]]:
-    """Fit stage I; returns the field and a log of the loss (every 10 steps)."""
+) -> Fit:
+    """Fit stage I; Ctrl-C ends it early with what was learnt so far."""
     torch.manual_seed(seed)
     field = new_field(data, config, seed, device, backend)
     extent = data.volume.radius
     optimizer = make_optimizer(field.gaussians, field.background, config, extent)
     densifier = Densifier(config, extent)
     rng = np.random.default_rng(seed + 1)
-    frames = len(data.windows)
-    times = data.windows.frame_times
-    grid = data.grid
     log: list[StepLog] = []
     started = clock()
     degree_every = max(config.iterations // 30, 1)
-    for step in range(1, config.iterations + 1):
-        sh_degree = min(config.sh_degree, (step - 1) // degree_every)
-        renders = []
-        terms = {"event": 0.0, "anchor": 0.0, "normal": 0.0}
-        total = torch.zeros((), device=device)
-        for _ in range(config.windows_per_step):
-            a = int(rng.integers(0, frames - 1))
-            b = min(a + int(rng.integers(1, config.max_window_frames + 1)), frames - 1)
-            poses = data.track.at(times[[a, b]])
-            pair = [field.render(T, grid, sh_degree) for T in poses]
-            renders += pair
-            seen = [grid.sample(r.color) for r in pair]  # [H * W, 3] at the sensor's pixels
-            logs = [log_radiance((s * data.channel_weights).sum(1), config.log_eps) for s in seen]
-            target, counts = data.windows.log_change(a, b)
-            ev = event_loss(
-                logs[1] - logs[0],
-                target.to(device),
-                counts.to(device),
-                data.windows.threshold_on.to(device),
-                data.windows.threshold_off.to(device),
-                data.mask,
-                config.zero_events,
-                config.silent_weight,
-            )
-            an = anchor_loss(torch.cat(seen), config.anchor_level)
-            loss = ev + config.anchor_weight * an
-            terms["event"] += ev.item()
-            terms["anchor"] += an.item()
-            if config.normal_weight > 0 and step > config.normal_from * config.iterations:
-                nl = sum(normal_loss(r.normal, r.depth, r.alpha, grid.K) for r in pair) / 2
-                loss = loss + config.normal_weight * nl
-                terms["normal"] += nl.item()
-            total = total + loss / config.windows_per_step
-        if not torch.isfinite(total):
-            raise FloatingPointError(f"stage I: the loss became {float(total)} at step {step}")
-        total.backward()
-        for r in renders:
-            densifier.observe(r, grid.width, grid.height)
-        for group in optimizer.param_groups:
-            if group["name"] == "means":
-                group["lr"] = means_lr(config, extent, step)
-        optimizer.step()
-        optimizer.zero_grad(set_to_none=True)
-        with torch.no_grad():
-            g = field.gaussians
-            # quaternions of any length are rotations; keep them well away from zero
-            g.quats.data = F.normalize(g.quats.data, dim=1)
-        densify, reset = densifier.due(step)
-        if densify:
-            densifier.densify(field.gaussians, optimizer)
-        if reset:
-            densifier.reset_opacities(field.gaussians, optimizer)
-        if step % 10 == 0 or step == config.iterations:
-            n = config.windows_per_step
-            log.append(
-                StepLog(
-                    step,
-                    float(total),
-                    terms["event"] / n,
-                    terms["anchor"] / n,
-                    terms["normal"] / n,
-                    len(field.gaussians),
-                    clock() - started,
+    interrupted = False
+    try:
+        for step in range(1, config.iterations + 1):
+            sh_degree = min(config.sh_degree, (step - 1) // degree_every)
+            frames = _draw_frames(rng, len(data.windows), config)
+            renders, total, terms = _losses(field, data, config, frames, sh_degree, step)
+            if not torch.isfinite(total):
+                raise NumericalError(f"stage I: the loss became {float(total)} at step {step}")
+            total.backward()
+            for r in renders:
+                densifier.observe(r, data.grid.width, data.grid.height)
+            for group in optimizer.param_groups:
+                if group["name"] == "means":
+                    group["lr"] = means_lr(config, extent, step)
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+            with torch.no_grad():
+                q = field.gaussians.quats
+                q.data = F.normalize(q.data, dim=1)  # any length is a rotation; keep off zero
+            densify, reset = densifier.due(step)
+            if densify:
+                densifier.densify(field.gaussians, optimizer)
+            if reset:
+                densifier.reset_opacities(field.gaussians, optimizer)
+            n = len(field.gaussians)
+            if step % 10 == 0 or step == config.iterations:
+                log.append(
+                    StepLog(step, float(total), **terms, gaussians=n, seconds=clock() - started)
+                )
+            if progress:
+                progress(step, config.iterations, f"loss {float(total):.4f}  {n:,} Gaussians")
+    except KeyboardInterrupt:
+        interrupted = True  # Ctrl-C: keep what was learnt so far
+    return Fit(field, log, interrupted)
+
+
+def _draw_frames(rng: np.random.Generator, frames: int, config: RadianceConfig) -> np.ndarray:
+    """views_per_step frame indices, increasing, each 1..max_window_frames after the last."""
+    gaps = rng.integers(1, config.max_window_frames + 1, config.views_per_step - 1)
+    span = int(gaps.sum())
+    if span >= frames:
+        gaps = np.maximum(gaps * (frames - 1) // span, 1)
+        span = int(gaps.sum())
+    start = int(rng.integers(0, max(frames - span, 1)))
+    return np.minimum(start + np.concatenate([[0], np.cumsum(gaps)]), frames - 1)
+
+
+def _losses(
+    field: RadianceField,
+    data: TrainingData,
+    config: RadianceConfig,
+    frames: np.ndarray,
+    sh_degree: int,
+    step: int,
+) -> tuple[list[Render], torch.Tensor, dict[str, float]]:
+    """The renders at the frames, and the loss of every window between two of them."""
+    poses = data.track.at(data.windows.frame_times[frames])
+    renders = [field.render(T, data.grid, sh_degree) for T in poses]
+    seen = [data.grid.sample(r.color) for r in renders]  # [H * W, 3] at the sensor's pixels
+    logs = [log_radiance((s * data.channel_weights).sum(1), config.log_eps) for s in seen]
+    w = data.windows
+    event = []
+    for i in range(len(frames)):
+        for j in range(i + 1, len(frames)):
+            if frames[j] == frames[i]:
+                continue
+            target, counts = w.log_change(int(frames[i]), int(frames[j]))
+            dev = logs[i].device
+            event.append(
+                event_loss(
+                    logs[j] - logs[i],
+                    target.to(dev),
+                    counts.to(dev),
+                    w.threshold_on.to(dev),
+                    w.threshold_off.to(dev),
+                    data.mask,
+                    config.zero_events,
+                    config.silent_weight,
                 )
             )
-        if progress:
-            progress(
-                step,
-                config.iterations,
-                f"loss {float(total):.4f}  {len(field.gaussians)} Gaussians",
-            )
-    return field, log
+    ev = torch.stack(event).mean() if event else logs[0].sum() * 0
+    an = anchor_loss(torch.cat(seen), config.anchor_level)
+    total = ev + config.anchor_weight * an
+    terms = {"event": ev.item(), "anchor": an.item(), "normal": 0.0}
+    if config.normal_weight > 0 and step > config.normal_from * config.iterations:
+        nl = sum(normal_loss(r.normal, r.depth, r.alpha, data.grid.K) for r in renders)
+        nl = nl / len(renders)
+        total = total + config.normal_weight * nl
+        terms["normal"] = nl.item()
+    if config.opacity_reg > 0:
+        total = total + config.opacity_reg * field.gaussians.opacities.mean()
+    return renders, total, terms
 
 
 def isfinite_field(field: RadianceField) -> bool:

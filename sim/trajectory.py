@@ -60,7 +60,16 @@ class Trajectory:
         p = spec.params
         self.kind = spec.kind
         known = {
-            "orbit": {"center", "radius", "height", "start_deg", "degrees", "look_at"},
+            "orbit": {
+                "center",
+                "radius",
+                "height",
+                "height_swing",
+                "swings",
+                "start_deg",
+                "degrees",
+                "look_at",
+            },
             "handheld": {"start", "end", "look_at", "shake_units", "shake_deg", "shake_hz"},
             "linear": {"start", "end", "look_at"},
             "static": {"position", "look_at"},
@@ -74,6 +83,8 @@ class Trajectory:
             self.center = _vec(p, "center", [0, 0, 0])
             self.radius = float(p.get("radius", 2.0))
             self.height = float(p.get("height", 0.5))
+            self.height_swing = float(p.get("height_swing", 0.0))
+            self.swings = float(p.get("swings", 1.0))
             self.start = np.deg2rad(float(p.get("start_deg", 0.0)))
             self.sweep = np.deg2rad(float(p.get("degrees", 90.0)))
             self.target = _vec(p, "look_at", list(self.center))
@@ -102,10 +113,10 @@ class Trajectory:
         """T_world_cam at time t (seconds)."""
         T = np.eye(4)
         if self.kind == "orbit":
-            a = self.start + self.sweep * t / self.duration_s
-            eye = self.center + np.array(
-                [self.radius * np.cos(a), self.radius * np.sin(a), self.height]
-            )
+            s = t / self.duration_s
+            a = self.start + self.sweep * s
+            z = self.height + self.height_swing * np.sin(2 * np.pi * self.swings * s)
+            eye = self.center + np.array([self.radius * np.cos(a), self.radius * np.sin(a), z])
             T[:3, :3] = look_at(eye, self.target)
         elif self.kind in ("handheld", "linear"):
             s = t / self.duration_s

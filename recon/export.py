@@ -1,0 +1,130 @@
+"""What a reconstruction leaves behind: the Gaussians as a 3DGS PLY, rendered views as PNG
+(and exact values as .npz), a checkpoint, the settings as TOML and the metrics as JSON."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from evcap.recon.metrics import srgb
+from evcap.recon.radiance import RadianceField
+from evcap.recon.sh import C0
+
+
+def write_ply(field: RadianceField, path: Path) -> None:
+    """The Gaussians in the layout of the 3DGS reference code (binary PLY: x y z nx ny nz
+    f_dc_* f_rest_* opacity scale_* rot_*), which existing viewers open.
+
+    Viewers show 0.5 + SH as display color; the field's SH give linear radiance through a
+    softplus. The exported coefficients are the display (sRGB) color of the degree-0 part, and
+    the higher bands scaled by the slope of that mapping there (first order)."""
+    g = field.gaussians
+    with torch.no_grad():
+        v0 = (C0 * g.sh_dc[:, 0]).double()
+        lin = torch.nn.functional.softplus(v0).clamp(0, 1)
+        disp = torch.from_numpy(srgb(lin.numpy()))
+        # d display / d v = srgb'(linear) * sigmoid(v)
+        eps = 1e-4
+        slope = (torch.from_numpy(srgb((lin + eps).numpy())) - disp) / eps * torch.sigmoid(v0)
+        f_dc = (disp - 0.5) / C0
+        rest = g.sh_rest.double() * slope[:, None, :]
+        cols = [
+            g.means.double(),
+            torch.zeros(len(g), 3, dtype=torch.float64),
+            f_dc,
+            rest.transpose(1, 2).reshape(len(g), -1),  # all of red, then green, then blue
+            g.opacity_logits.double()[:, None],
+            g.log_scales.double(),
+            torch.nn.functional.normalize(g.quats.double(), dim=1),
+        ]
+        data = torch.cat(cols, 1).float().cpu().numpy()
+    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+    names += [f"f_rest_{i}" for i in range(rest.shape[1] * 3)]
+    names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(data)}"]
+    header += [f"property float {n}" for n in names] + ["end_header"]
+    with open(path, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode())
+        f.write(data.astype("<f4").tobytes())
+
+
+def read_ply_header(path: Path) -> tuple[int, list[str]]:
+    """(vertex count, property names) of a PLY written by write_ply."""
+    with open(path, "rb") as f:
+        lines = []
+        while (line := f.readline().decode().strip()) != "end_header":
+            lines.append(line)
+    count = next(int(x.split()[-1]) for x in lines if x.startswith("element vertex"))
+    return count, [x.split()[-1] for x in lines if x.startswith("property")]
+
+
+def write_views(
+    views: dict[str, np.ndarray], folder: Path, name: str, cc: np.ndarray | None
+) -> None:
+    """PNGs of each view: radiance (sRGB; and color-corrected when ``cc`` is given), depth
+    (16-bit, thousandths of a scene unit) and normals ((n + 1) / 2, camera frame); the exact
+    values in ``{name}.npz``."""
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(folder / f"{name}.npz", **views)
+
+    def rgb8(x: np.ndarray) -> np.ndarray:
+        return (np.clip(x, 0, 1)[..., ::-1] * 255 + 0.5).astype(np.uint8)
+
+    for i in range(len(views["radiance"])):
+        stem = folder / f"{name}_{i:03d}"
+        cv2.imwrite(f"{stem}_radiance.png", rgb8(srgb(views["radiance"][i])))
+        if cc is not None:
+            cv2.imwrite(
+                f"{stem}_radiance_cc.png", rgb8(srgb(views["radiance"][i] * cc[:, 0] + cc[:, 1]))
+            )
+        depth = np.clip(np.round(views["depth"][i] * 1000), 0, 65535).astype(np.uint16)
+        cv2.imwrite(f"{stem}_depth.png", depth)
+        cv2.imwrite(f"{stem}_normal.png", rgb8(views["normal"][i] * 0.5 + 0.5))
+
+
+def save_checkpoint(field: RadianceField, config: dict, extra: dict, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    torch.save(
+        {
+            "gaussians": {k: v.detach().cpu() for k, v in field.gaussians.state_dict().items()},
+            "background": field.background.coeffs.detach().cpu(),
+            "config": config,
+            **extra,
+        },
+        tmp,
+    )
+    tmp.replace(path)  # a crash mid-write leaves the previous checkpoint
+
+
+def write_json(data: dict, path: Path) -> None:
+    def clean(v):
+        if isinstance(v, float) and not math.isfinite(v):
+            return None
+        if isinstance(v, np.generic):
+            return v.item()
+        return v
+
+    path.write_text(json.dumps({k: clean(v) for k, v in data.items()}, indent=2) + "\n")
+
+
+def write_toml(sections: dict[str, dict], path: Path) -> None:
+    """A flat TOML of scalar settings, one table per section."""
+    lines = []
+    for section, values in sections.items():
+        lines.append(f"[{section}]")
+        for k, v in values.items():
+            if isinstance(v, bool):
+                lines.append(f"{k} = {str(v).lower()}")
+            elif isinstance(v, int | float):
+                lines.append(f"{k} = {v!r}")
+            elif v is not None:
+                lines.append(f"{k} = {json.dumps(str(v))}")
+        lines.append("")
+    path.write_text("\n".join(lines))
