@@ -289,10 +289,21 @@ def _capture_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-imu", action="store_true", help="without IMU samples")
 
 
+class _HelpFormatter(argparse.HelpFormatter):
+    """argparse measures the command names without the indent they are printed with, so the
+    longest one would sit on a line of its own."""
+
+    def add_argument(self, action: argparse.Action) -> None:
+        super().add_argument(action)
+        if isinstance(action, argparse._SubParsersAction):
+            self._action_max_length += self._indent_increment
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="evcap",
         description="Record, calibrate and reconstruct scenes with a color event camera.",
+        formatter_class=_HelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"evcap {__version__}")
     sub = parser.add_subparsers(title="commands", metavar="COMMAND", required=True)
@@ -399,7 +410,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "reconstruct",
-        help="recover the scene from a session's events: Gaussians, renders, metrics",
+        help="recover the scene from a session's events, as 3D Gaussians",
         description="Fit 3D Gaussians to a session's events (its calibration and poses are "
         "used) and write OUT/gaussians.ply, OUT/renders/, OUT/checkpoint/, OUT/config.toml "
         "and OUT/metrics.json (with the ground truth of a simulated session).",

@@ -52,7 +52,7 @@ class RadianceConfig:
     percent_dense: float = 0.01  # clone below, split above this fraction of the scene extent
     min_opacity: float = 0.005  # pruned below
     opacity_reset_every: int = 0  # steps; 0: never (resets upset the event loss on short runs)
-    background_sh_degree: int = 3  # the distant background, as a function of direction
+    background_size: int = 64  # texels along an edge of each face of the background cube map
     eval_every: int = 0  # steps between held-out evaluations in the log (0: only at the end)
 
 
@@ -64,7 +64,7 @@ PRESETS: dict[str, RadianceConfig] = {
         init_gaussians=1500,
         max_gaussians=4000,
         densify_every=50,
-        background_sh_degree=1,
+        background_size=16,
     ),
     "fast": RadianceConfig(),
     "paper": RadianceConfig(

@@ -94,7 +94,7 @@ def save_checkpoint(field: RadianceField, config: dict, extra: dict, path: Path)
     torch.save(
         {
             "gaussians": {k: v.detach().cpu() for k, v in field.gaussians.state_dict().items()},
-            "background": field.background.coeffs.detach().cpu(),
+            "background": field.background.faces.detach().cpu(),
             "config": config,
             **extra,
         },

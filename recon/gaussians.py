@@ -97,19 +97,36 @@ def _neighbour_distance(points: torch.Tensor, k: int = 3, chunk: int = 2048) -> 
 
 
 class Background(torch.nn.Module):
-    """The distant background: radiance as a function of the world direction (spherical
-    harmonics through a softplus), seen wherever the Gaussians leave light through."""
+    """The distant background: radiance as a function of the world direction, seen wherever
+    the Gaussians leave light through. A cube map (six square faces, bilinear, through a
+    softplus): sharp where the distance has edges (a horizon, a skyline), which low-order
+    spherical harmonics smear into rings that Gaussians then try to cover as fog; and it has no
+    preferred "up", which the poses of a real session do not give."""
 
-    def __init__(self, degree: int) -> None:
+    def __init__(self, size: int) -> None:
         super().__init__()
-        coeffs = torch.zeros((degree + 1) ** 2, 3)
-        coeffs[0] = START_VALUE / C0
-        self.degree = degree
-        self.coeffs = torch.nn.Parameter(coeffs)
+        self.faces = torch.nn.Parameter(torch.full((6, 3, size, size), START_VALUE))
 
     def forward(self, dirs: torch.Tensor) -> torch.Tensor:
         """Radiance [..., 3] in world directions [..., 3]."""
-        return F.softplus(eval_sh(self.degree, self.coeffs, dirs))
+        shape = dirs.shape[:-1]
+        d = dirs.reshape(-1, 3)
+        axis = d.abs().argmax(1)
+        major = d.gather(1, axis[:, None]).squeeze(1)
+        face = axis * 2 + (major < 0)  # +x, -x, +y, -y, +z, -z
+        # the two other coordinates over the major one: where on that face the ray lands
+        others = torch.tensor([[1, 2], [0, 2], [0, 1]], device=d.device)[axis]
+        uv = d.gather(1, others) / major.abs().clamp_min(1e-12)[:, None]
+        out = torch.empty_like(d)
+        for f in range(6):
+            sel = face == f
+            if sel.any():
+                grid = uv[sel].reshape(1, 1, -1, 2)
+                texels = F.grid_sample(
+                    self.faces[f : f + 1], grid, align_corners=False, padding_mode="border"
+                )
+                out[sel] = texels[0, :, 0].T
+        return F.softplus(out).reshape(*shape, 3)
 
 
 def make_optimizer(
@@ -122,7 +139,7 @@ def make_optimizer(
         {"params": [model.opacity_logits], "lr": config.lr_opacity, "name": "opacity_logits"},
         {"params": [model.sh_dc], "lr": config.lr_sh, "name": "sh_dc"},
         {"params": [model.sh_rest], "lr": config.lr_sh / 20, "name": "sh_rest"},
-        {"params": [background.coeffs], "lr": config.lr_background, "name": "background"},
+        {"params": [background.faces], "lr": config.lr_background, "name": "background"},
     ]
     return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
 

@@ -140,7 +140,7 @@ def new_field(
         distance = np.sqrt(data.volume.near * data.volume.far)
     footprint = distance / float(data.grid.K[0, 0])
     gaussians = Gaussians.random(points, config.sh_degree, g, config.init_size_px * footprint)
-    return RadianceField(gaussians, Background(config.background_sh_degree), backend).to(device)
+    return RadianceField(gaussians, Background(config.background_size), backend).to(device)
 
 
 def train_radiance(
@@ -172,6 +172,7 @@ def train_radiance(
             if not torch.isfinite(total):
                 raise NumericalError(f"stage I: the loss became {float(total)} at step {step}")
             total.backward()
+            loss = total.item()
             for r in renders:
                 densifier.observe(r, data.grid.width, data.grid.height)
             for group in optimizer.param_groups:
@@ -189,11 +190,9 @@ def train_radiance(
                 densifier.reset_opacities(field.gaussians, optimizer)
             n = len(field.gaussians)
             if step % 10 == 0 or step == config.iterations:
-                log.append(
-                    StepLog(step, float(total), **terms, gaussians=n, seconds=clock() - started)
-                )
+                log.append(StepLog(step, loss, **terms, gaussians=n, seconds=clock() - started))
             if progress:
-                progress(step, config.iterations, f"loss {float(total):.4f}  {n:,} Gaussians")
+                progress(step, config.iterations, f"loss {loss:.4f}  {n:,} Gaussians")
     except KeyboardInterrupt:
         interrupted = True  # Ctrl-C: keep what was learnt so far
     return Fit(field, log, interrupted)

@@ -1,0 +1,181 @@
+"""What accuracy costs in time: stage I of `evcap reconstruct` on the simulator's example scenes,
+for the presets and a sweep of iterations and render resolution around `fast`. Records quality
+(held-out render PSNR/SSIM after color correction, depth and normal error) against wall time
+and Gaussian count; writes a table (JSON and Markdown) and a plot (PNG).
+
+    .venv/bin/python bench/recon_pareto.py [--scenes single_object] [--presets tiny fast]
+        [--iterations 300 600 1200] [--resolutions 0.35 0.5] [--device cpu] [--figure PNG]
+
+The scenes are simulated once into bench/results/sessions/ (a few minutes each). `paper` is
+for a GPU: name it with --presets and --device cuda. The plot needs matplotlib
+(`pip install -e '.[bench]'`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+from _common import RESULTS, machine
+
+from evcap.recon.reconstruct import reconstruct
+from evcap.sim.scene import load_scene
+from evcap.sim.simulate import simulate
+
+SCENES = Path(__file__).resolve().parent.parent / "sim" / "scenes"
+LABELS = {"preset": "presets", "seed": "fast, other seeds", "sweep": "fast: iterations, scale"}
+COLUMNS = (
+    "scene",
+    "run",
+    "iterations",
+    "resolution",
+    "seconds",
+    "gaussians",
+    "render_psnr",
+    "render_psnr_cc",
+    "render_ssim_cc",
+    "depth_abs_err",
+    "normal_mae_deg",
+)
+
+
+def session_of(scene: str) -> Path:
+    path = RESULTS / "sessions" / f"{scene}.h5"
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        print(f"simulating {scene} (once) ...", flush=True)
+        simulate(load_scene(SCENES / f"{scene}.toml"), path)
+    return path
+
+
+def run_one(session: Path, preset: str, device: str, **overrides: object) -> dict:
+    with tempfile.TemporaryDirectory() as out:
+        return reconstruct(session, out, preset=preset, device=device, **overrides)
+
+
+def markdown(rows: list[dict]) -> str:
+    def cell(v: object) -> str:
+        if isinstance(v, float):
+            return f"{v:.3g}" if abs(v) < 100 else f"{v:.0f}"
+        return str(v)
+
+    lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    lines += ["| " + " | ".join(cell(r.get(c)) for c in COLUMNS) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = sorted({r["scene"] for r in rows})
+    fig, axes = plt.subplots(1, len(scenes), figsize=(6 * len(scenes), 4.2), squeeze=False)
+    for ax, scene in zip(axes[0], scenes, strict=True):
+        for group, marker in (("preset", "o"), ("seed", "^"), ("sweep", "s")):
+            pts = [r for r in rows if r["scene"] == scene and r["group"] == group]
+            if not pts:
+                continue
+            ax.scatter(
+                [r["seconds"] / 60 for r in pts],
+                [r["render_psnr_cc"] for r in pts],
+                s=[20 + r["gaussians"] / 1000 for r in pts],
+                marker=marker,
+                label=LABELS[group],
+                alpha=0.8,
+            )
+            for r in pts:
+                ax.annotate(
+                    r["run"],
+                    (r["seconds"] / 60, r["render_psnr_cc"]),
+                    fontsize=7,
+                    xytext=(4, 2),
+                    textcoords="offset points",
+                )
+        ax.set_xscale("log")
+        ax.set_xlabel("wall time, minutes (log)")
+        ax.set_ylabel("held-out render PSNR after color correction, dB")
+        ax.set_title(f"stage I on {scene} ({rows[0]['device']}; marker area ~ Gaussians)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--scenes", nargs="+", default=["single_object"])
+    parser.add_argument("--presets", nargs="+", default=["tiny", "fast"])
+    parser.add_argument("--iterations", nargs="*", type=int, default=[300, 1200])
+    parser.add_argument("--resolutions", nargs="*", type=float, default=[0.35, 0.5])
+    parser.add_argument("--seeds", type=int, default=3, help="runs of fast with seeds 0..N-1")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--figure", type=Path, help="also write the plot here")
+    args = parser.parse_args()
+
+    rows = []
+
+    def record(scene: str, group: str, name: str, result: dict) -> None:
+        row = {"scene": scene, "group": group, "run": name, **result}
+        rows.append(row)
+        print(" ".join(f"{c}={row.get(c)}" for c in COLUMNS), flush=True)
+
+    for scene in args.scenes:
+        session = session_of(scene)
+        for preset in args.presets:
+            result = run_one(session, preset, args.device)
+            record(scene, "preset", preset, {**result, "resolution": None})
+        for seed in range(1, args.seeds):  # seed 0 is the fast preset's run above
+            result = run_one(session, "fast", args.device, seed=seed)
+            record(scene, "seed", f"fast, seed {seed}", {**result, "resolution": None})
+        for iterations in args.iterations:
+            for resolution in args.resolutions:
+                result = run_one(
+                    session, "fast", args.device, iterations=iterations, resolution=resolution
+                )
+                name = f"{iterations} it, x{resolution:g}"
+                record(scene, "sweep", name, {**result, "resolution": resolution})
+
+    spread = {}
+    for scene in args.scenes:
+        seeded = [
+            r["render_psnr"]
+            for r in rows
+            if r["scene"] == scene and (r["group"] == "seed" or r["run"] == "fast")
+        ]
+        if len(seeded) > 1:
+            spread[scene] = max(seeded) - min(seeded)
+    table = markdown(rows) + "".join(
+        f"\n{scene}: render PSNR over {args.seeds} seeds of fast spans {s:.2f} dB\n"
+        for scene, s in spread.items()
+    )
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "recon_pareto.json").write_text(
+        json.dumps(
+            {
+                "benchmark": "recon_pareto",
+                "machine": machine(),
+                "runs": rows,
+                "seed_spread_db": spread,
+            },
+            indent=2,
+        )
+    )
+    (RESULTS / "recon_pareto.md").write_text(table)
+    print(table)
+    try:
+        plot(rows, RESULTS / "recon_pareto.png")
+    except ImportError:
+        print("no matplotlib: the plot is skipped (pip install -e '.[bench]')")
+        return
+    if args.figure:
+        args.figure.parent.mkdir(parents=True, exist_ok=True)
+        plot(rows, args.figure)
+    print(f"-> {RESULTS / 'recon_pareto.json'}, .md, .png")
+
+
+if __name__ == "__main__":
+    main()
