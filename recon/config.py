@@ -13,16 +13,17 @@ from evcap.errors import InputError
 class RadianceConfig:
     """Stage I: the event-supervised Gaussian radiance field."""
 
-    iterations: int = 3000  # optimisation steps
+    iterations: int = 1000  # optimisation steps
     resolution: float = 0.5  # render scale, relative to the sensor (1 = full)
     sh_degree: int = 1  # view dependence of the Gaussians' radiance (0..3)
-    init_gaussians: int = 20_000  # random points inside the volume the cameras look at
-    max_gaussians: int = 200_000  # densification stops growing beyond this
+    init_gaussians: int = 5000  # random points inside the volume the cameras look at
+    max_gaussians: int = 15_000  # densification stops growing beyond this
     init_size_px: float = 1.0  # largest starting size (sigma), in render pixels
     # events: the time grid the windows are aligned to, and the window lengths drawn
     frame_interval_ms: float = 5.0  # one rendered frame every this many ms at most
     max_frames: int = 4000  # the grid is made coarser for recordings longer than this
-    max_window_frames: int = 10  # a window spans 1..this many frame intervals
+    max_window_frames: int = 60  # a window spans 1..this many frame intervals (long ones
+    # carry the edges' changes across flat regions)
     views_per_step: int = 3  # renders per step; every two of them make a window
     log_eps: float = 1e-3  # added to the radiance before the log (the sensor's dark level)
     # a pixel without events: "target" (its change is 0) or "bound" (|change| < C)
@@ -43,7 +44,7 @@ class RadianceConfig:
     lr_quats: float = 1e-3
     lr_opacity: float = 0.025
     lr_sh: float = 2.5e-3  # degree-0 coefficients; higher bands use a twentieth of it
-    lr_background: float = 1e-2
+    lr_background: float = 3e-2
     # densification (3DGS): from/until are fractions of the run
     densify_from: float = 0.05
     densify_until: float = 0.6
