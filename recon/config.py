@@ -22,13 +22,13 @@ class RadianceConfig:
     # events: the time grid the windows are aligned to, and the window lengths drawn
     frame_interval_ms: float = 5.0  # one rendered frame every this many ms at most
     max_frames: int = 4000  # the grid is made coarser for recordings longer than this
-    max_window_frames: int = 60  # a window spans 1..this many frame intervals (long ones
+    max_window_frames: int = 150  # a window spans 1..this many frame intervals (long ones
     # carry the edges' changes across flat regions)
     views_per_step: int = 3  # renders per step; every two of them make a window
     log_eps: float = 1e-3  # added to the radiance before the log (the sensor's dark level)
     # a pixel without events: "target" (its change is 0) or "bound" (|change| < C)
     zero_events: str = "target"
-    silent_weight: float = 0.1  # share of the event loss for pixels without events (EventNeRF)
+    silent_weight: float = 0.3  # share of the event loss for pixels without events
     # loss weights (method.md): L = L_event + 0.1 L_GW + 0.05 L_normal
     anchor_weight: float = 0.1
     anchor_level: float = 0.5  # g: the mean rendered brightness
@@ -44,7 +44,8 @@ class RadianceConfig:
     lr_quats: float = 1e-3
     lr_opacity: float = 0.025
     lr_sh: float = 2.5e-3  # degree-0 coefficients; higher bands use a twentieth of it
-    lr_background: float = 3e-2
+    # the background must be learnt fast: where it lags, Gaussians grow in front of it
+    lr_background: float = 0.1
     # densification (3DGS): from/until are fractions of the run
     densify_from: float = 0.05
     densify_until: float = 0.6
@@ -74,7 +75,6 @@ PRESETS: dict[str, RadianceConfig] = {
         sh_degree=3,
         init_gaussians=100_000,
         max_gaussians=1_000_000,
-        max_window_frames=50,
         densify_from=500 / 30_000,
         densify_until=15_000 / 30_000,
         opacity_reset_every=10_000,

@@ -1,10 +1,12 @@
 """`evcap reconstruct` end to end on a tiny simulated scene (color and MONO)."""
 
 import json
+import shutil
 import subprocess
 import sys
 import tomllib
 
+import h5py
 import numpy as np
 import pytest
 import torch
@@ -100,11 +102,11 @@ def test_ply_is_the_common_3dgs_layout(color_result):
 
 
 def test_learns_the_scene_from_events_alone(color_session, tmp_path):
-    result = reconstruct(color_session, tmp_path, preset="tiny", resolution=1.0, iterations=600)
+    result = reconstruct(color_session, tmp_path, preset="tiny", resolution=1.0)
     # the best constant image scores 16.1 dB after color correction on this scene; this run
-    # scored 19.2 dB when it was written
+    # scored 19.0 dB (depth error 0.197, at about 2.2 units) when it was written
     assert result["render_psnr_cc"] > 18
-    assert result["depth_abs_err"] < 0.2
+    assert result["depth_abs_err"] < 0.25
 
 
 def test_checkpoint_holds_the_field(color_result):
@@ -126,7 +128,7 @@ def test_mono_session(tiny_scene, tmp_path_factory):
     assert result["iterations"] == 40 and np.isfinite(result["render_psnr_cc"])
 
 
-def test_cli_missing_poses_is_a_clear_error(tmp_path, sample_aedat4):
+def test_cli_uncalibrated_session_is_a_clear_error(tmp_path, sample_aedat4):
     session = tmp_path / "s.h5"
     run = [sys.executable, "-m", "evcap"]
     subprocess.run([*run, "import", str(sample_aedat4), "-o", str(session)], check=True)
@@ -136,4 +138,13 @@ def test_cli_missing_poses_is_a_clear_error(tmp_path, sample_aedat4):
         text=True,
     )
     assert r.returncode == 2
-    assert "no camera poses" in r.stderr and "evcap poses" in r.stderr
+    assert "no calibration" in r.stderr and "evcap calibrate" in r.stderr
+
+
+def test_missing_poses_is_a_clear_error(color_session, tmp_path):
+    session = tmp_path / "no-poses.h5"
+    shutil.copy(color_session, session)
+    with h5py.File(session, "a") as f:
+        del f["poses"]
+    with pytest.raises(InputError, match="no camera poses.*evcap poses"):
+        reconstruct(session, tmp_path / "out", preset="tiny")

@@ -187,3 +187,17 @@ def test_microsecond_times_far_from_zero_stay_exact():
     assert w.frame_times.dtype == np.int64
     on, off = w.counts(1, 2)
     assert on.sum() == 2 and off.sum() == 0
+
+
+def test_background_is_finite_in_every_direction():
+    from evcap.recon.gaussians import Background
+
+    bg = Background(8)
+    axes = torch.eye(3)
+    dirs = torch.cat([axes, -axes, torch.randn(500, 3, generator=torch.Generator().manual_seed(0))])
+    dirs = torch.nn.functional.normalize(dirs, dim=1)
+    out = bg(dirs.reshape(2, -1, 3))
+    out.sum().backward()
+    assert out.shape == (2, 253, 3) and torch.isfinite(out).all()
+    assert torch.isfinite(bg.faces.grad).all() and (bg.faces.grad != 0).any()
+    torch.testing.assert_close(out, torch.full_like(out, 0.5))  # starts at the anchor level
