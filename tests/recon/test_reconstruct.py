@@ -148,3 +148,14 @@ def test_missing_poses_is_a_clear_error(color_session, tmp_path):
         del f["poses"]
     with pytest.raises(InputError, match="no camera poses.*evcap poses"):
         reconstruct(session, tmp_path / "out", preset="tiny")
+
+
+def test_cli_writes_a_reconstruction(color_session, tmp_path):
+    out = tmp_path / "out"
+    args = ["reconstruct", str(color_session), "-o", str(out), "--preset", "tiny"]
+    args += ["--iterations", "5", "--resolution", "1", "--seed", "2"]
+    r = subprocess.run([sys.executable, "-m", "evcap", *args], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["iterations"] == 5 and metrics["seed"] == 2
+    assert "render_psnr_cc" in r.stdout
