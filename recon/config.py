@@ -55,7 +55,6 @@ class RadianceConfig:
     min_opacity: float = 0.005  # pruned below
     opacity_reset_every: int = 0  # steps; 0: never (resets upset the event loss on short runs)
     background_size: int = 64  # texels along an edge of each face of the background cube map
-    eval_every: int = 0  # steps between held-out evaluations in the log (0: only at the end)
 
 
 PRESETS: dict[str, RadianceConfig] = {

@@ -254,7 +254,3 @@ def _losses(
     if config.opacity_reg > 0:
         total = total + config.opacity_reg * field.gaussians.opacities.mean()
     return renders, total, terms
-
-
-def isfinite_field(field: RadianceField) -> bool:
-    return all(bool(torch.isfinite(p).all()) for p in field.parameters())
