@@ -44,6 +44,10 @@ class RenderResult:
     base_color: np.ndarray  # [P, 3]; 0 where no surface
     roughness: np.ndarray  # [P]; 0 where no surface
     hit: np.ndarray  # [P] bool
+    # [P] direct irradiance received / direct irradiance if nothing blocked (environment without
+    # the bounce, sun, point lights): 1 where unshadowed; 0 where no surface
+    visibility: np.ndarray
+    indirect: np.ndarray  # [P, 3] radiance added by the one bounce of diffuse light
 
 
 def _noise(uv: np.ndarray, scale: float, seed: int) -> np.ndarray:
@@ -194,6 +198,12 @@ class Renderer:
                 if progress:
                     progress(b, n_vert)
         env = self.env.irradiance(m.normals, k, visible if light.shadows else None)
+        # the shadow factor of the ground truth (RenderResult.visibility) needs the unshadowed too
+        self.vertex_env = env
+        self.vertex_env_unshadowed = (
+            self.env.irradiance(m.normals, k, None) if light.shadows else env
+        )
+        self.vertex_bounce = np.zeros((n_vert, 3))
         self.vertex_visibility = (
             (cos * visible).sum(1) / np.maximum(cos.sum(1), 1e-12)
             if light.shadows
@@ -216,10 +226,19 @@ class Renderer:
                 weights = cos[rows, np.nonzero(sel)[1]] * (4 * np.pi / k)
                 np.add.at(bounce, rows, radiance * weights[:, None])
             self.vertex_irradiance = env + bounce
+            self.vertex_bounce = bounce
 
     def _point_irradiance(self, x: np.ndarray, n: np.ndarray, shadows: bool) -> np.ndarray:
         """Irradiance from the sun and point lights at points x with normals n."""
+        return self._point_irradiance_both(x, n, shadows)[0]
+
+    def _point_irradiance_both(
+        self, x: np.ndarray, n: np.ndarray, shadows: bool
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(irradiance from the sun and point lights at points x with normals n, the same
+        if nothing blocked the lights)."""
         out = np.zeros((len(x), 3))
+        unshadowed = np.zeros((len(x), 3))
         for direction, irradiance, distance in self._light_dirs(x):
             ndl = np.clip((n * direction).sum(1), 0, None)
             lit = ndl > 0
@@ -228,7 +247,8 @@ class Renderer:
                     x[lit] + n[lit] * SHADOW_BIAS, direction[lit], distance[lit] - 2 * SHADOW_BIAS
                 )
             out += irradiance * (ndl * lit)[:, None]
-        return out
+            unshadowed += irradiance * ndl[:, None]
+        return out, unshadowed
 
     def _light_dirs(self, x: np.ndarray):
         """(unit direction to the light [N, 3], irradiance at normal incidence [N, 3],
@@ -297,6 +317,8 @@ class Renderer:
         base = np.zeros((n_px, 3))
         rough = np.zeros(n_px)
         depth = np.zeros(n_px)
+        light_visibility = np.zeros(n_px)
+        indirect = np.zeros((n_px, 3))
         if (~hit).any():
             radiance[~hit] = self.env.background(dirs[~hit])
         if hit.any():
@@ -315,8 +337,19 @@ class Renderer:
             irradiance = (self.vertex_irradiance[tri] * w[..., None]).sum(1)
             visibility = (self.vertex_visibility[tri] * w).sum(1)
             shadows = self.scene.lighting.shadows
-            irradiance = irradiance + self._point_irradiance(x, n, shadows)
+            points, points_unshadowed = self._point_irradiance_both(x, n, shadows)
+            irradiance = irradiance + points
             color = albedo / np.pi * irradiance
+            received = (self.vertex_env[tri] * w[..., None]).sum(1) + points
+            unblocked = (self.vertex_env_unshadowed[tri] * w[..., None]).sum(1) + points_unshadowed
+            received, unblocked = received.sum(1), unblocked.sum(1)
+            dark = unblocked <= 1e-12
+            # clip: the ratio may pass 1 by rounding
+            light_visibility[hit] = np.where(
+                dark, 1.0, np.clip(received / np.where(dark, 1.0, unblocked), 0, 1)
+            )
+            bounce = (self.vertex_bounce[tri] * w[..., None]).sum(1)
+            indirect[hit] = albedo / np.pi * bounce
             ndv = np.clip((n * view).sum(1), 1e-4, 1)
             reflected = 2 * ndv[:, None] * n - view
             ab = self._dfg(ndv, r)
@@ -340,10 +373,11 @@ class Renderer:
             base[hit] = albedo
             rough[hit] = r
             depth[hit] = t[hit] * (ray_z[hit] if ray_z is not None else 1.0)
-        return RenderResult(radiance, depth, normal, base, rough, hit)
+        return RenderResult(radiance, depth, normal, base, rough, hit, light_visibility, indirect)
 
     def render_full(self, T_world_cam: np.ndarray) -> dict[str, np.ndarray]:
-        """All pixels, as images: radiance [H, W, 3], depth, normal, base_color, roughness."""
+        """All pixels, as images: radiance [H, W, 3], depth, normal, base_color, roughness,
+        visibility, indirect."""
         h, w = self.camera.height, self.camera.width
         r = self.render(T_world_cam)
         return {
@@ -352,4 +386,6 @@ class Renderer:
             "normal": r.normal.reshape(h, w, 3).astype(np.float32),
             "base_color": r.base_color.reshape(h, w, 3).astype(np.float32),
             "roughness": r.roughness.reshape(h, w).astype(np.float32),
+            "visibility": r.visibility.reshape(h, w).astype(np.float32),
+            "indirect": r.indirect.reshape(h, w, 3).astype(np.float32),
         }

@@ -337,6 +337,15 @@ class Simulator:
             "depth": "z in the camera frame (OpenCV axes); 0 where no surface",
             "normal": "unit, in the camera frame (OpenCV axes: x right, y down, z forward)",
             "radiance": "linear RGB, before the color filter",
+            "visibility": (
+                "direct irradiance received / direct irradiance if nothing blocked (environment"
+                " without the bounce, sun, point lights): the shadow factor, 1 unshadowed;"
+                " 0 where no surface"
+            ),
+            "indirect": (
+                "linear RGB radiance added by one bounce of diffuse light (color bleeding):"
+                " base_color / pi * bounced irradiance; 0 without lighting.indirect or surface"
+            ),
             "hot_pixels": self.pixels.hot.astype(np.int64),
             "charuco": json.dumps([_board_json(b) for b in self.renderer.boards if b]),
         }

@@ -116,3 +116,49 @@ def test_shadows_and_color_bleeding_only_when_asked(tiny_scene):
     gain = lum(bled) / lum(shadowed) - 1  # light bounced off the post: red, not green/blue
     assert gain[0] > 0.005 and gain[0] > 10 * np.abs(gain[1:]).max(), gain
     np.testing.assert_allclose(plain["base_color"], bled["base_color"])  # truth unchanged
+
+
+SLANTED_SUN = SUN.replace("sun_direction = [0, 0, 1]", "sun_direction = [1, 0, 1]")
+
+
+def _floor_and_post(tiny_scene, shadows: bool, indirect: bool) -> tuple[Renderer, np.ndarray]:
+    lighting = (
+        SLANTED_SUN + f"\nshadows = {str(shadows).lower()}\nindirect = {str(indirect).lower()}"
+    )
+    path = tiny_scene(
+        lighting=lighting, objects=FLOOR_AND_BALL, trajectory=TOP_VIEW, width=64, height=48, fx=40.0
+    )
+    scene = load_scene(path)
+    return Renderer(scene), Trajectory(scene.trajectory).pose(0.0)
+
+
+def test_visibility_and_indirect_maps(tiny_scene):
+    """The red post on the white floor, the sun 45 degrees off the zenith towards +x: the floor
+    on the post's -x side is in its shadow, the floor on its +x side gets red bounced light."""
+    r, T = _floor_and_post(tiny_scene, shadows=True, indirect=True)
+    out = r.render_full(T)
+    vis, ind, hit = out["visibility"], out["indirect"], out["depth"] > 0
+    assert vis.shape == (48, 64) and vis.dtype == np.float32
+    assert ind.shape == (48, 64, 3) and ind.dtype == np.float32
+    assert hit.any() and (vis >= 0).all() and (vis <= 1).all() and (ind >= 0).all()
+    assert (vis[~hit] == 0).all() and (ind[~hit] == 0).all()
+    # straight down onto: the floor away from the sun, the floor towards it, the post's top
+    origins = np.array([[-0.45, 0.0, 2.0], [0.45, 0.0, 2.0], [0.0, 0.0, 2.0]])
+    dirs = np.broadcast_to([0.0, 0.0, -1.0], (3, 3))
+    px = r.render_rays(origins, dirs)
+    np.testing.assert_allclose(px.depth, [2.0, 2.0, 1.0], atol=1e-6)
+    assert px.visibility[0] < 0.6 and px.visibility[1] > 0.8, px.visibility
+    assert px.visibility[2] == pytest.approx(1.0, abs=1e-6)  # nothing above the top
+    red = px.indirect[1]
+    assert red[0] > 1e-3 and red[0] > 5 * red[1:].max(), red
+    assert np.all(px.radiance[1] >= px.indirect[1])  # a part of the light there
+
+    plain, T = _floor_and_post(tiny_scene, shadows=False, indirect=False)
+    out = plain.render_full(T)
+    hit = out["depth"] > 0
+    np.testing.assert_allclose(out["visibility"][hit], 1.0, atol=1e-6)
+    assert (out["visibility"][~hit] == 0).all() and (out["indirect"] == 0).all()
+
+    unbounced, T = _floor_and_post(tiny_scene, shadows=True, indirect=False)
+    out = unbounced.render_full(T)
+    assert (out["indirect"] == 0).all() and out["visibility"][out["depth"] > 0].min() < 0.6

@@ -147,6 +147,9 @@ def test_session_ground_truth_and_fixture(tiny_scene, tmp_path):
             assert g[key].shape == (n, 36, 48)
         assert g["normal"].shape == g["base_color"].shape == (n, 36, 48, 3)
         assert g["test_radiance"].shape == (3, 36, 48, 3)
+        assert g["visibility"].shape == (n, 36, 48) and g["test_visibility"].shape == (3, 36, 48)
+        assert g["indirect"].shape == (n, 36, 48, 3) and g["test_indirect"].shape == (3, 36, 48, 3)
+        assert "shadow" in g.attrs["visibility"] and "bounce" in g.attrs["indirect"]
         hit = g["depth"][0] > 0
         np.testing.assert_allclose(np.linalg.norm(g["normal"][0][hit], axis=1), 1, atol=1e-4)
         assert (g["normal"][0][hit][:, 2] < 0.2).all()  # camera frame: facing the camera
