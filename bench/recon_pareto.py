@@ -4,7 +4,11 @@ for the presets and a sweep of iterations and render resolution around `fast`. R
 and Gaussian count; writes a table (JSON and Markdown) and a plot (PNG).
 
     .venv/bin/python bench/recon_pareto.py [--scenes single_object] [--presets tiny fast]
-        [--iterations 300 600 1200] [--resolutions 0.35 0.5] [--device cpu] [--figure PNG]
+        [--seeds 3] [--iterations 300 1000] [--resolutions 0.35 0.5] [--device cpu]
+        [--merge] [--figure PNG]
+
+--merge keeps the rows of the previous results that this run does not redo, so the sweep can
+be run apart from the presets (`--presets --seeds 0 --merge`).
 
 The scenes are simulated once into bench/results/sessions/ (a few minutes each). `paper` is
 for a GPU: name it with --presets and --device cuda. The plot needs matplotlib
@@ -108,15 +112,18 @@ def plot(rows: list[dict], path: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--scenes", nargs="+", default=["single_object"])
-    parser.add_argument("--presets", nargs="+", default=["tiny", "fast"])
-    parser.add_argument("--iterations", nargs="*", type=int, default=[300, 1200])
+    parser.add_argument("--presets", nargs="*", default=["tiny", "fast"])
+    parser.add_argument("--iterations", nargs="*", type=int, default=[300, 1000])
     parser.add_argument("--resolutions", nargs="*", type=float, default=[0.35, 0.5])
     parser.add_argument("--seeds", type=int, default=3, help="runs of fast with seeds 0..N-1")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--merge", action="store_true", help="keep the previous rows not rerun")
     parser.add_argument("--figure", type=Path, help="also write the plot here")
     args = parser.parse_args()
 
     rows = []
+    previous = RESULTS / "recon_pareto.json"
+    kept = json.loads(previous.read_text())["runs"] if args.merge and previous.exists() else []
 
     def record(scene: str, group: str, name: str, result: dict) -> None:
         row = {"scene": scene, "group": group, "run": name, **result}
@@ -131,14 +138,19 @@ def main() -> None:
         for seed in range(1, args.seeds):  # seed 0 is the fast preset's run above
             result = run_one(session, "fast", args.device, seed=seed)
             record(scene, "seed", f"fast, seed {seed}", {**result, "resolution": None})
+        has_fast = any(r["scene"] == scene and r["run"] == "fast" for r in kept + rows)
         for iterations in args.iterations:
             for resolution in args.resolutions:
+                if has_fast and (iterations, resolution) == (1000, 0.5):
+                    continue  # that is the fast preset
                 result = run_one(
                     session, "fast", args.device, iterations=iterations, resolution=resolution
                 )
                 name = f"{iterations} it, x{resolution:g}"
                 record(scene, "sweep", name, {**result, "resolution": resolution})
 
+    redone = {(r["scene"], r["run"]) for r in rows}
+    rows = [r for r in kept if (r["scene"], r["run"]) not in redone] + rows
     spread = {}
     for scene in args.scenes:
         seeded = [

@@ -252,6 +252,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     from evcap._progress import progress_bar
     from evcap.recon.reconstruct import reconstruct
 
+    without = set(args.without or ())
     with progress_bar(f"reconstructing ({args.preset})") as update:
         result = reconstruct(
             args.session,
@@ -261,24 +262,44 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
             device=args.device,
             resolution=args.resolution,
             iterations=args.iterations,
+            material_iterations=args.material_iterations,
             seed=args.seed,
             zero_events=args.zero_events,
+            visibility="off" if "visibility" in without else args.visibility,
+            indirect="off" if "indirect" in without else args.indirect,
+            ablate=tuple(ABLATION_FLAGS[w] for w in sorted(without) if w in ABLATION_FLAGS),
+            relight=args.relight,
             overwrite=args.force,
             progress=update,
         )
-    figures = "  ".join(
-        f"{k} {result[k]:.3f}"
-        for k in ("render_psnr_cc", "render_ssim_cc", "depth_abs_err", "normal_mae_deg")
-        if result.get(k) is not None
+    stopped = " (interrupted: what was learnt so far)" if result.get("interrupted") else ""
+    if args.stage != "material":
+        print(
+            f"{args.output}: {result['gaussians']:,} Gaussians after {result['iterations']:,} "
+            f"steps in {result['seconds']:.0f} s on {result['device']}{stopped}"
+        )
+    if "material_seconds" in result:
+        on = [k for k, v in result["effects"].items() if v]
+        print(
+            f"{args.output}: material after {result['material_iterations']:,} steps in "
+            f"{result['material_seconds']:.0f} s (with {', '.join(on) or 'nothing else'}){stopped}"
+        )
+    keys = (
+        "render_psnr_cc",
+        "depth_abs_err",
+        "normal_mae_deg",
+        "base_color_psnr_cc",
+        "roughness_mae",
+        "pbr_render_psnr_cc",
     )
-    stopped = " (interrupted: what was learnt so far)" if result["interrupted"] else ""
-    print(
-        f"{args.output}: {result['gaussians']:,} Gaussians after {result['iterations']:,} steps "
-        f"in {result['seconds']:.0f} s on {result['device']}{stopped}"
-    )
+    figures = "  ".join(f"{k} {result[k]:.3f}" for k in keys if result.get(k) is not None)
     if figures:
         print(f"held-out views: {figures}")
     return 0
+
+
+# --without: the switches of the method's ablations
+ABLATION_FLAGS = {"anchor": "anchor", "edge-tv": "tv", "distillation": "distill"}
 
 
 def _capture_arguments(p: argparse.ArgumentParser) -> None:
@@ -417,7 +438,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("session", help="the session file (.h5), with /calibration and /poses")
     p.add_argument("-o", "--output", required=True, metavar="OUT", help="the folder to write")
-    p.add_argument("--stage", default="radiance", choices=["radiance"], help="what to fit")
+    p.add_argument(
+        "--stage",
+        default="all",
+        choices=["radiance", "material", "all"],
+        help="radiance: stage I (geometry, radiance); material: stage II (base color, "
+        "roughness, normals, light) from OUT's stage-I checkpoint; all: both (default)",
+    )
     p.add_argument(
         "--preset",
         default="fast",
@@ -435,6 +462,24 @@ def build_parser() -> argparse.ArgumentParser:
         "--zero-events",
         choices=["target", "bound"],
         help="a pixel without events means no change (target) or |change| < C (bound)",
+    )
+    p.add_argument("--material-iterations", type=int, metavar="N", help="stage II steps")
+    for effect, what in (("visibility", "shadows"), ("indirect", "light from other surfaces")):
+        p.add_argument(
+            f"--{effect}",
+            choices=["auto", "on", "off"],
+            help=f"model {what} (default auto: when the scene has occluders)",
+        )
+    p.add_argument(
+        "--without",
+        action="append",
+        choices=[*ABLATION_FLAGS, "visibility", "indirect"],
+        help="leave a term of stage II out (the method's ablations); repeatable",
+    )
+    p.add_argument(
+        "--relight",
+        metavar="ENV",
+        help="also render the views under this environment (latitude-longitude image, z up)",
     )
     p.add_argument("-f", "--force", action="store_true", help="overwrite a reconstruction in OUT")
     p.set_defaults(run=_cmd_reconstruct)

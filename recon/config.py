@@ -57,6 +57,51 @@ class RadianceConfig:
     background_size: int = 64  # texels along an edge of each face of the background cube map
 
 
+@dataclass
+class MaterialConfig:
+    """Stage II: base color, roughness, normals and the light, geometry frozen (method.md)."""
+
+    iterations: int = 400
+    # L = L_event + 1.0 L_rad + 0.1 L_GW + 0.05 L_TV, TV weights exp(-beta M_edge), lambda_n
+    distill_weight: float = 1.0
+    anchor_weight: float = 0.1
+    tv_weight: float = 0.05
+    edge_beta: float = 10.0
+    tv_normal_weight: float = 0.1
+    # effects: "auto" models them when the scene calls for it (visibility: occluders found in
+    # the baked geometry; indirect: with visibility), "on", or "off"
+    visibility: str = "auto"
+    indirect: str = "auto"
+    edge_slice_ms: float = 10.0  # the events warped into each edge map
+    edge_frames: int = 48  # views with an edge map; the training frames of stage II
+    lr_base_color: float = 0.01
+    lr_roughness: float = 0.01
+    lr_normals: float = 0.002
+    lr_indirect: float = 0.005
+    lr_light: float = 0.02
+
+
+MATERIAL_PRESETS: dict[str, MaterialConfig] = {
+    "tiny": MaterialConfig(iterations=60, edge_frames=16),
+    "fast": MaterialConfig(),
+    "paper": MaterialConfig(iterations=10_000, edge_frames=200),
+}
+
+
+def material_preset(name: str, **overrides: object) -> MaterialConfig:
+    if name not in MATERIAL_PRESETS:
+        raise InputError(f"unknown preset {name!r}; expected one of {', '.join(PRESETS)}")
+    config = dataclasses.replace(
+        MATERIAL_PRESETS[name], **{k: v for k, v in overrides.items() if v is not None}
+    )
+    if config.iterations < 0:
+        raise InputError("material iterations must be at least 0")
+    for effect in ("visibility", "indirect"):
+        if getattr(config, effect) not in ("auto", "on", "off"):
+            raise InputError(f'{effect} must be "auto", "on" or "off"')
+    return config
+
+
 PRESETS: dict[str, RadianceConfig] = {
     "tiny": RadianceConfig(
         iterations=150,
@@ -107,5 +152,5 @@ def check(config: RadianceConfig) -> None:
         raise InputError("views_per_step must be at least 2 (a window needs two views)")
 
 
-def to_dict(config: RadianceConfig) -> dict:
+def to_dict(config: RadianceConfig | MaterialConfig) -> dict:
     return dataclasses.asdict(config)

@@ -7,12 +7,14 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from evcap.recon.material import CHANNELS, MaterialField
 from evcap.recon.metrics import (
     depth_abs_err,
     image_metrics,
     lpips_if_available,
     normal_mae_deg,
     srgb,
+    surface_metrics,
 )
 from evcap.recon.optics import SensorOptics, render_grid
 from evcap.recon.radiance import RadianceField
@@ -21,23 +23,37 @@ from evcap.session import Session
 
 @torch.no_grad()
 def render_views(
-    field: RadianceField, poses: np.ndarray, optics: SensorOptics, device: str = "cpu"
+    field: RadianceField | MaterialField,
+    poses: np.ndarray,
+    optics: SensorOptics,
+    device: str = "cpu",
+    light: list[torch.Tensor] | None = None,
 ) -> dict[str, np.ndarray]:
     """radiance [N, H, W, 3] (linear), depth [N, H, W] (camera z), normal [N, H, W, 3] (unit,
-    camera frame; 0 where nothing was rendered) and alpha [N, H, W], at the sensor's pixels."""
+    camera frame; 0 where nothing was rendered) and alpha [N, H, W], at the sensor's pixels;
+    from a stage-II field also base_color [N, H, W, 3] and roughness [N, H, W], its normals
+    the shading normals, and its radiance lit by ``light`` when given."""
     grid = render_grid(optics, 1.0, device)
     H, W = optics.height, optics.width
-    out: dict[str, list] = {"radiance": [], "depth": [], "normal": [], "alpha": []}
+    channels = CHANNELS if isinstance(field, MaterialField) else {"radiance": 3}
+    names = [k for k in channels if k != "shading_normal"]
+    out: dict[str, list] = {k: [] for k in ["depth", "normal", "alpha", *names]}
     for T in poses:
-        r = field.render(T, grid)
+        r = field.render(T, grid) if light is None else field.render(T, grid, light)
         alpha = r.alpha[..., None]
-        maps = torch.cat([r.color, r.depth[..., None] * alpha, alpha, r.normal], -1)
+        maps = torch.cat([r.depth[..., None] * alpha, alpha, r.normal, r.color], -1)
         s = grid.sample(maps).reshape(H, W, -1)
-        a = s[..., 4]
-        out["radiance"].append(s[..., :3])
-        out["depth"].append(torch.where(a > 1e-6, s[..., 3] / a.clamp(min=1e-6), 0))
+        a = s[..., 1]
+        out["depth"].append(torch.where(a > 1e-6, s[..., 0] / a.clamp(min=1e-6), 0))
         out["alpha"].append(a)
-        n = s[..., 5:8]
+        n, start = s[..., 2:5], 5
+        for name, size in channels.items():
+            value = s[..., start : start + size].squeeze(-1)
+            start += size
+            if name == "shading_normal":
+                n = value
+            else:
+                out[name].append(value)
         out["normal"].append(torch.where(a[..., None] > 0.05, F.normalize(n, dim=-1), 0))
     return {k: torch.stack(v).cpu().numpy() for k, v in out.items()}
 
@@ -62,4 +78,38 @@ def metrics(views: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -> dict[
         out["depth_abs_err"] = depth_abs_err(views["depth"], truth["depth"])
     if "normal" in truth:
         out["normal_mae_deg"] = normal_mae_deg(views["normal"], truth["normal"])
+    return out
+
+
+SHADOW_BELOW = 0.7  # a surface point in shadow: less than this of its direct light reaches it
+BLEEDING_ABOVE = 0.1  # color bleeding: the bounce brings more than this share of its radiance
+
+
+def material_metrics(
+    views: dict[str, np.ndarray], truth: dict[str, np.ndarray]
+) -> dict[str, float | None]:
+    """Stage II against the truth: base color (on the surface; also inside shadows and color
+    bleeding when the truth marks them), roughness, normals, and the physically based render."""
+    out: dict[str, float | None] = {}
+    if "radiance" in truth:
+        out.update(image_metrics(views["radiance"], truth["radiance"], "pbr_render"))
+    if "normal" in truth:
+        out["normal_mae_deg"] = normal_mae_deg(views["normal"], truth["normal"])
+        surface = np.linalg.norm(truth["normal"], axis=-1) > 0.5
+        regions = {}
+        if "visibility" in truth:
+            regions["shadow"] = truth["visibility"] < SHADOW_BELOW
+        if "indirect" in truth and "radiance" in truth:
+            lum = np.array([0.2126, 0.7152, 0.0722])
+            bounce, total = truth["indirect"] @ lum, truth["radiance"] @ lum
+            regions["bleeding"] = bounce > BLEEDING_ABOVE * np.maximum(total, 1e-6)
+        if "base_color" in truth:
+            out.update(
+                surface_metrics(
+                    views["base_color"], truth["base_color"], surface, "base_color", regions
+                )
+            )
+        if "roughness" in truth and surface.any():
+            err = np.abs(views["roughness"] - truth["roughness"])[surface]
+            out["roughness_mae"] = float(err.mean())
     return out

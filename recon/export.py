@@ -10,6 +10,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from evcap.errors import InputError
+from evcap.recon.gaussians import PARAMS, Background, Gaussians
+from evcap.recon.material import MaterialField
 from evcap.recon.metrics import srgb
 from evcap.recon.radiance import RadianceField
 from evcap.recon.sh import C0
@@ -66,8 +69,9 @@ def write_views(
     views: dict[str, np.ndarray], folder: Path, name: str, cc: np.ndarray | None
 ) -> None:
     """PNGs of each view: radiance (sRGB; and color-corrected when ``cc`` is given), depth
-    (16-bit, thousandths of a scene unit) and normals ((n + 1) / 2, camera frame); the exact
-    values in ``{name}.npz``."""
+    (16-bit, thousandths of a scene unit), normals ((n + 1) / 2, camera frame), and base color
+    (sRGB) and roughness (0..255) when the views have them; the exact values in
+    ``{name}.npz``."""
     import cv2
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -86,20 +90,46 @@ def write_views(
         depth = np.clip(np.round(views["depth"][i] * 1000), 0, 65535).astype(np.uint16)
         cv2.imwrite(f"{stem}_depth.png", depth)
         cv2.imwrite(f"{stem}_normal.png", rgb8(views["normal"][i] * 0.5 + 0.5))
+        if "base_color" in views:
+            cv2.imwrite(f"{stem}_base_color.png", rgb8(srgb(views["base_color"][i])))
+        if "roughness" in views:
+            rough = np.clip(views["roughness"][i], 0, 1)
+            cv2.imwrite(f"{stem}_roughness.png", (rough * 255 + 0.5).astype(np.uint8))
+
+
+def write_image(linear: np.ndarray, path: Path) -> None:
+    """A linear RGB image [H, W, 3] as an 8-bit sRGB PNG."""
+    import cv2
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    img = np.clip(srgb(linear), 0, 1)[..., ::-1] * 255 + 0.5
+    cv2.imwrite(str(path), img.astype(np.uint8))
 
 
 def save_checkpoint(field: RadianceField, config: dict, extra: dict, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    torch.save(
+    _save(
         {
             "gaussians": {k: v.detach().cpu() for k, v in field.gaussians.state_dict().items()},
             "background": field.background.faces.detach().cpu(),
             "config": config,
             **extra,
         },
-        tmp,
+        path,
     )
+
+
+def save_material_checkpoint(field: MaterialField, extra: dict, path: Path) -> None:
+    """Stage II: the material, the light, the baked visibility and which effects were on."""
+    state = {k: v.detach().cpu() for k, v in field.state_dict().items()}
+    if field.visibility_sh is not None:
+        state["visibility_sh"] = field.visibility_sh.detach().cpu()
+    _save({"material": state, "effects": field.effects, **extra}, path)
+
+
+def _save(data: dict, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    torch.save(data, tmp)
     tmp.replace(path)  # a crash mid-write leaves the previous checkpoint
 
 
@@ -128,3 +158,17 @@ def write_toml(sections: dict[str, dict], path: Path) -> None:
                 lines.append(f"{k} = {json.dumps(str(v))}")
         lines.append("")
     path.write_text("\n".join(lines))
+
+
+def load_checkpoint(path: Path, device: str = "cpu", backend: str = "torch"):
+    """(RadianceField, settings) from a stage-I checkpoint written by save_checkpoint."""
+    if not path.exists():
+        raise InputError(f"{path}: no stage-I checkpoint; run `evcap reconstruct --stage radiance`")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        gaussians = Gaussians(*(state["gaussians"][k] for k in PARAMS))
+        background = Background(state["background"].shape[-1])
+        background.faces.data.copy_(state["background"])
+    except (KeyError, RuntimeError, ValueError) as e:
+        raise InputError(f"{path}: not a readable stage-I checkpoint ({e})") from e
+    return RadianceField(gaussians, background, backend).to(device), state["config"]

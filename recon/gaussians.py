@@ -10,6 +10,7 @@ import torch.nn.functional as F
 
 from evcap.recon.config import RadianceConfig
 from evcap.recon.sh import C0, eval_sh
+from evcap.recon.shading import cube_lookup
 
 PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")
 # radiance = softplus(SH value): positive (its log is finite), linear for bright values
@@ -109,24 +110,11 @@ class Background(torch.nn.Module):
 
     def forward(self, dirs: torch.Tensor) -> torch.Tensor:
         """Radiance [..., 3] in world directions [..., 3]."""
-        shape = dirs.shape[:-1]
-        d = dirs.reshape(-1, 3)
-        axis = d.abs().argmax(1)
-        major = d.gather(1, axis[:, None]).squeeze(1)
-        face = axis * 2 + (major < 0)  # +x, -x, +y, -y, +z, -z
-        # the two other coordinates over the major one: where on that face the ray lands
-        others = torch.tensor([[1, 2], [0, 2], [0, 1]], device=d.device)[axis]
-        uv = d.gather(1, others) / major.abs().clamp_min(1e-12)[:, None]
-        out = torch.empty_like(d)
-        for f in range(6):
-            sel = face == f
-            if sel.any():
-                grid = uv[sel].reshape(1, 1, -1, 2)
-                texels = F.grid_sample(
-                    self.faces[f : f + 1], grid, align_corners=False, padding_mode="border"
-                )
-                out[sel] = texels[0, :, 0].T
-        return F.softplus(out).reshape(*shape, 3)
+        return F.softplus(cube_lookup(self.faces, dirs))
+
+    def radiance_faces(self) -> torch.Tensor:
+        """The cube map's radiance [6, 3, S, S]."""
+        return F.softplus(self.faces)
 
 
 def make_optimizer(

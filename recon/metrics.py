@@ -96,3 +96,30 @@ def lpips_if_available(pred: np.ndarray, gt: np.ndarray) -> float | None:
     tb = torch.as_tensor(np.asarray(gt, np.float32)).permute(0, 3, 1, 2) * 2 - 1
     with torch.no_grad():
         return float(model(ta, tb).mean())
+
+
+def surface_metrics(
+    pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, prefix: str, regions: dict | None = None
+) -> dict[str, float]:
+    """PSNR and SSIM of a material map [N, H, W, 3] on the surface only (``mask`` [N, H, W]),
+    raw and after a per-channel affine correction fitted there; off the surface both images
+    are 0 for SSIM. ``regions``: name -> mask, a PSNR (corrected) inside each."""
+    if not mask.any():
+        return {}
+    cc = fit_color_correction(pred[mask], gt[mask])
+    corrected = np.where(mask[..., None], pred * cc[:, 0] + cc[:, 1], 0)
+    raw = np.where(mask[..., None], pred, 0)
+    truth = np.where(mask[..., None], gt, 0)
+    a, b, c = srgb(raw), srgb(truth), srgb(corrected)
+    out = {
+        f"{prefix}_psnr": psnr(a[mask], b[mask]),
+        f"{prefix}_ssim": ssim(a, b),
+        f"{prefix}_psnr_cc": psnr(c[mask], b[mask]),
+        f"{prefix}_ssim_cc": ssim(c, b),
+    }
+    for name, region in (regions or {}).items():
+        region = region & mask
+        if region.any():
+            out[f"{prefix}_psnr_cc_{name}"] = psnr(c[region], b[region])
+            out[f"{name}_share"] = float(region.sum() / mask.sum())
+    return out

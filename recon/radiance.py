@@ -209,18 +209,11 @@ def _draw_frames(rng: np.random.Generator, frames: int, config: RadianceConfig) 
     return np.minimum(start + np.concatenate([[0], np.cumsum(gaps)]), frames - 1)
 
 
-def _losses(
-    field: RadianceField,
-    data: TrainingData,
-    config: RadianceConfig,
-    frames: np.ndarray,
-    sh_degree: int,
-    step: int,
-) -> tuple[list[Render], torch.Tensor, dict[str, float]]:
-    """The renders at the frames, and the loss of every window between two of them."""
-    poses = data.track.at(data.windows.frame_times[frames])
-    renders = [field.render(T, data.grid, sh_degree) for T in poses]
-    seen = [data.grid.sample(r.color) for r in renders]  # [H * W, 3] at the sensor's pixels
+def windows_event_loss(
+    data: TrainingData, config: RadianceConfig, frames: np.ndarray, seen: list[torch.Tensor]
+) -> torch.Tensor:
+    """The event loss of every window between two of the views ``seen`` [H * W, 3] (the
+    renders at the sensor's pixels) at ``frames``, averaged."""
     logs = [log_radiance((s * data.channel_weights).sum(1), config.log_eps) for s in seen]
     w = data.windows
     event = []
@@ -242,7 +235,22 @@ def _losses(
                     config.silent_weight,
                 )
             )
-    ev = torch.stack(event).mean() if event else logs[0].sum() * 0
+    return torch.stack(event).mean() if event else logs[0].sum() * 0
+
+
+def _losses(
+    field: RadianceField,
+    data: TrainingData,
+    config: RadianceConfig,
+    frames: np.ndarray,
+    sh_degree: int,
+    step: int,
+) -> tuple[list[Render], torch.Tensor, dict[str, float]]:
+    """The renders at the frames, and the loss of every window between two of them."""
+    poses = data.track.at(data.windows.frame_times[frames])
+    renders = [field.render(T, data.grid, sh_degree) for T in poses]
+    seen = [data.grid.sample(r.color) for r in renders]  # [H * W, 3] at the sensor's pixels
+    ev = windows_event_loss(data, config, frames, seen)
     an = anchor_loss(torch.cat(seen), config.anchor_level)
     total = ev + config.anchor_weight * an
     terms = {"event": ev.item(), "anchor": an.item(), "normal": 0.0}

@@ -1,0 +1,377 @@
+"""Stage II: the stage-I Gaussians, frozen, given a material (base color, roughness, a normal;
+metallic 0), shaded under a learnt environment light (method.md):
+
+    L = L_event + 1.0 L_rad + 0.1 L_GW + 0.05 L_TV
+
+L_rad holds the physically based render to the frozen stage-I radiance of the same view; L_TV
+smooths the rendered base color and normals except where the event edge map has an edge.
+Visibility (baked from the geometry) and indirect light (learnt) are modelled only when the
+scene calls for them.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from evcap.errors import NumericalError
+from evcap.recon.config import MaterialConfig, RadianceConfig
+from evcap.recon.edges import edge_map
+from evcap.recon.gaussians import Background, Gaussians
+from evcap.recon.losses import anchor_loss
+from evcap.recon.optics import RenderGrid
+from evcap.recon.radiance import RadianceField, TrainingData, pixel_directions, windows_event_loss
+from evcap.recon.rasterize import Camera, Render, gaussian_normals, rasterize
+from evcap.recon.sh import eval_sh
+from evcap.recon.shading import (
+    DIFFUSE_DIRECTIONS,
+    MIN_ROUGHNESS,
+    cube_directions,
+    cube_lookup,
+    fibonacci_directions,
+    mip_chain,
+    shade,
+)
+from evcap.recon.visibility import bake_visibility, visibility_at
+from evcap.session import Session
+
+# the channels of a stage-II render, in order
+CHANNELS = {"radiance": 3, "base_color": 3, "roughness": 1, "shading_normal": 3}
+# occluders: an isolated object shows no depth jumps inside its outline; the multi-object
+# example scene shows them at about 4 % of its opaque pixels
+OCCLUSION_JUMP = 0.1  # relative depth step between neighbouring pixels
+OCCLUDED_SHARE = 0.01
+
+
+def _logit(x: torch.Tensor) -> torch.Tensor:
+    return torch.log(x) - torch.log1p(-x)
+
+
+class MaterialField(torch.nn.Module):
+    """Frozen Gaussians with a learnt material, and the light."""
+
+    def __init__(
+        self,
+        gaussians: Gaussians,
+        light: Background,
+        normals: torch.Tensor,
+        visibility: torch.Tensor | None,
+        indirect: bool,
+        backend: str = "torch",
+    ) -> None:
+        super().__init__()
+        self.gaussians = gaussians.requires_grad_(False)
+        self.light = light  # also what the camera sees where the Gaussians leave light through
+        n = len(gaussians)
+        self.base_logits = torch.nn.Parameter(torch.zeros(n, 3))
+        self.roughness_logits = torch.nn.Parameter(torch.zeros(n))
+        self.normals = torch.nn.Parameter(normals.clone())
+        self.indirect_sh = torch.nn.Parameter(torch.full((n, 4, 3), -8.0)) if indirect else None
+        self.register_buffer("directions", fibonacci_directions(DIFFUSE_DIRECTIONS))
+        self.visibility_sh = visibility
+        self.backend = backend
+
+    @property
+    def effects(self) -> dict[str, bool]:
+        return {
+            "visibility": self.visibility_sh is not None,
+            "indirect": self.indirect_sh is not None,
+        }
+
+    @property
+    def base_color(self) -> torch.Tensor:
+        return torch.sigmoid(self.base_logits)
+
+    @property
+    def roughness(self) -> torch.Tensor:
+        return MIN_ROUGHNESS + (1 - MIN_ROUGHNESS) * torch.sigmoid(self.roughness_logits)
+
+    def shaded(self, center: torch.Tensor, light: list[torch.Tensor] | None = None):
+        """(radiance [N, 3] towards a camera at ``center``, unit normals [N, 3] facing it)."""
+        g = self.gaussians
+        view = F.normalize(center - g.means, dim=1)
+        n = F.normalize(self.normals, dim=1)
+        n = torch.where((n * view).sum(1, keepdim=True) < 0, -n, n)  # two-sided
+        vis = None
+        if self.visibility_sh is not None:
+            vis = visibility_at(self.visibility_sh, self.directions)
+        indirect = None
+        if self.indirect_sh is not None:
+            indirect = F.softplus(eval_sh(1, self.indirect_sh, n))
+        light = mip_chain(self.light.radiance_faces()) if light is None else light
+        color = shade(
+            self.base_color, self.roughness, n, view, light, self.directions, vis, indirect
+        )
+        return color, n
+
+    def render(
+        self, T_world_cam: np.ndarray, grid: RenderGrid, light: list[torch.Tensor] | None = None
+    ) -> Render:
+        """Channels (CHANNELS): the physically based radiance, base color, roughness and the
+        shading normals (camera frame); the light behind the Gaussians in the radiance."""
+        device = self.gaussians.means.device
+        viewmat = torch.as_tensor(np.linalg.inv(T_world_cam), dtype=torch.float32, device=device)
+        cam = Camera(viewmat, grid.K, grid.width, grid.height)
+        color, n = self.shaded(cam.center, light)
+        features = torch.cat(
+            [color, self.base_color, self.roughness[:, None], n @ viewmat[:3, :3].T], 1
+        )
+        faces = self.light.radiance_faces() if light is None else light[0]
+        sky = cube_lookup(faces, pixel_directions(cam))
+        bg = torch.cat([sky, sky.new_zeros(*sky.shape[:-1], 7)], -1)
+        g = self.gaussians
+        return rasterize(
+            g.means,
+            g.quats,
+            g.scales,
+            g.opacities,
+            features,
+            cam,
+            background=bg,
+            backend=self.backend,
+        )
+
+
+def new_material_field(
+    radiance: RadianceField, data: TrainingData, config: MaterialConfig
+) -> MaterialField:
+    """Stage II's start: normals from the Gaussians' flat axes (facing the cameras), visibility
+    baked when the scene has occluders, base color such that the diffuse shading under the
+    stage-I background as light gives the stage-I radiance."""
+    g = radiance.gaussians
+    light = Background(radiance.background.faces.shape[-1]).to(g.means.device)
+    light.faces.data.copy_(radiance.background.faces.data)
+    with torch.no_grad():
+        normals = gaussian_normals(g.quats, g.scales)
+        cams = torch.as_tensor(
+            data.track.at(data.windows.frame_times)[:, :3, 3].mean(0), dtype=torch.float32
+        ).to(g.means.device)
+        normals = torch.where(
+            ((cams - g.means) * normals).sum(1, keepdim=True) < 0, -normals, normals
+        )
+    field = MaterialField(g, light, normals, None, False, radiance.backend)
+    if config.visibility == "on" or (config.visibility == "auto" and has_occluders(field, data)):
+        field.visibility_sh = bake_visibility(g)
+    indirect = config.indirect == "on" or (
+        config.indirect == "auto" and field.visibility_sh is not None
+    )
+    if indirect:
+        field.indirect_sh = torch.nn.Parameter(
+            torch.full((len(g), 4, 3), -8.0, device=g.means.device)
+        )
+    with torch.no_grad():
+        target = g.radiance(cams, 0)
+        field.base_logits.zero_()
+        field.roughness_logits.fill_(
+            _logit(torch.tensor((0.6 - MIN_ROUGHNESS) / (1 - MIN_ROUGHNESS)))
+        )
+        color, _ = field.shaded(cams)
+        field.base_logits.copy_(_logit((0.5 * target / color.clamp(min=1e-6)).clamp(0.03, 0.97)))
+    return field
+
+
+@torch.no_grad()
+def has_occluders(field: MaterialField, data: TrainingData, views: int = 4) -> bool:
+    """Whether surfaces hide one another in the views along the path: depth jumps by more
+    than OCCLUSION_JUMP between neighbouring opaque pixels on more than OCCLUDED_SHARE of them.
+    (An isolated object's depth is continuous wherever it is opaque; the baked visibility
+    itself cannot tell, as a surface with misjudged normals looks into itself.)"""
+    g = field.gaussians
+    times = np.linspace(data.windows.frame_times[0], data.windows.frame_times[-1], views)
+    jumps = opaque = 0
+    for T in data.track.at(times.astype(np.int64)):
+        viewmat = torch.as_tensor(np.linalg.inv(T), dtype=torch.float32, device=g.means.device)
+        cam = Camera(viewmat, data.grid.K, data.grid.width, data.grid.height)
+        r = rasterize(g.means, g.quats, g.scales, g.opacities, g.means.new_zeros(len(g), 1), cam)
+        d, o = r.depth, r.alpha > 0.9
+        opaque += int(o.sum())
+        for d1, d2, o1, o2 in (
+            (d[:, 1:], d[:, :-1], o[:, 1:], o[:, :-1]),
+            (d[1:], d[:-1], o[1:], o[:-1]),
+        ):
+            step = (d1 - d2).abs() / torch.minimum(d1, d2).clamp(min=1e-6)
+            jumps += int(((step > OCCLUSION_JUMP) & o1 & o2).sum())
+    return opaque > 0 and jumps / opaque > OCCLUDED_SHARE
+
+
+@dataclass
+class MaterialLog:
+    step: int
+    loss: float
+    event: float
+    distill: float
+    anchor: float
+    tv: float
+    seconds: float
+
+
+@dataclass
+class MaterialFit:
+    field: MaterialField
+    log: list[MaterialLog]
+    interrupted: bool
+    edges: dict[int, torch.Tensor]  # frame -> edge map [h, w] on the render grid
+
+
+def edge_frames(data: TrainingData, count: int) -> np.ndarray:
+    """The frames stage II trains on: evenly spread over the recording."""
+    return np.unique(np.linspace(0, len(data.windows) - 1, max(count, 2)).round().astype(int))
+
+
+def edge_maps(
+    session: Session, data: TrainingData, frames: np.ndarray, slice_ms: float, device: str
+) -> dict[int, torch.Tensor]:
+    """The event edge map [h, w] of each frame, on the render grid: the events of the slice
+    before the frame's time, warped by contrast maximisation."""
+    grid = data.grid
+    # where each sensor pixel lies on the render (undistorted, scaled)
+    g = data.grid.grid.reshape(-1, 2).cpu().numpy().astype(np.float64)
+    u = (g[:, 0] + 1) / 2 * (grid.width - 1)
+    v = (g[:, 1] + 1) / 2 * (grid.height - 1)
+    out = {}
+    for f in frames:
+        t1 = int(data.windows.frame_times[f])
+        t0 = t1 - round(slice_ms * 1000)
+        ev = session.events(t0, t1)
+        pix = ev.y.astype(np.int64) * data.optics.width + ev.x
+        keep = ~data.optics.hot_pixels.ravel()[pix]
+        xy = np.stack([u[pix[keep]], v[pix[keep]]], 1)
+        m, _ = edge_map(xy, ev.t[keep], t1, grid.width, grid.height)
+        out[int(f)] = torch.from_numpy(m).to(device)
+    return out
+
+
+def train_material(
+    radiance: RadianceField,
+    data: TrainingData,
+    session: Session,
+    stage1: RadianceConfig,
+    config: MaterialConfig,
+    *,
+    seed: int = 0,
+    device: str = "cpu",
+    progress: Callable[[int, int, str], None] | None = None,
+    clock: Callable[[], float] = time.perf_counter,
+    ablate: frozenset[str] = frozenset(),
+) -> MaterialFit:
+    """Fit stage II from a stage-I field; Ctrl-C ends it early with what was learnt so far.
+    ``ablate`` switches terms off: "anchor", "tv", "distill"."""
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed + 2)
+    radiance.requires_grad_(False)
+    field = new_material_field(radiance, data, config)
+    frames_all = edge_frames(data, config.edge_frames)
+    edges = edge_maps(session, data, frames_all, config.edge_slice_ms, device)
+    weights = {f: torch.exp(-config.edge_beta * m) for f, m in edges.items()}
+    groups = [
+        {"params": [field.base_logits], "lr": config.lr_base_color},
+        {"params": [field.roughness_logits], "lr": config.lr_roughness},
+        {"params": [field.normals], "lr": config.lr_normals},
+        {"params": [field.light.faces], "lr": config.lr_light},
+    ]
+    if field.indirect_sh is not None:
+        groups.append({"params": [field.indirect_sh], "lr": config.lr_indirect})
+    optimizer = torch.optim.Adam(groups, eps=1e-15)
+    stage1_cache: dict[int, torch.Tensor] = {}
+    stride = max(len(data.windows) / len(frames_all), 1.0)
+    max_gap = max(1, int(stage1.max_window_frames / stride))
+    log: list[MaterialLog] = []
+    started = clock()
+    interrupted = False
+    try:
+        for step in range(1, config.iterations + 1):
+            gaps = rng.integers(1, max_gap + 1, stage1.views_per_step - 1)
+            pick = np.minimum(
+                int(rng.integers(0, len(frames_all))) + np.concatenate([[0], np.cumsum(gaps)]),
+                len(frames_all) - 1,
+            )
+            frames = frames_all[pick]
+            poses = data.track.at(data.windows.frame_times[frames])
+            renders = [field.render(T, data.grid) for T in poses]
+            seen = [data.grid.sample(r.color[..., :3]) for r in renders]
+            ev = windows_event_loss(data, stage1, frames, seen)
+            total = ev
+            terms = {"event": ev.item(), "distill": 0.0, "anchor": 0.0, "tv": 0.0}
+            if "distill" not in ablate:
+                dl = 0
+                for f, T, r in zip(frames, poses, renders, strict=True):
+                    if int(f) not in stage1_cache:
+                        with torch.no_grad():
+                            stage1_cache[int(f)] = radiance.render(T, data.grid).color
+                    dl = dl + (r.color[..., :3] - stage1_cache[int(f)]).abs().mean()
+                dl = dl / len(renders)
+                total = total + config.distill_weight * dl
+                terms["distill"] = dl.item()
+            if "anchor" not in ablate:
+                an = anchor_loss(torch.cat(seen), stage1.anchor_level)
+                total = total + config.anchor_weight * an
+                terms["anchor"] = an.item()
+            if "tv" not in ablate:
+                tv = sum(
+                    edge_tv(r.color, weights[int(f)], config.tv_normal_weight)
+                    for f, r in zip(frames, renders, strict=True)
+                ) / len(renders)
+                total = total + config.tv_weight * tv
+                terms["tv"] = tv.item()
+            if not torch.isfinite(total):
+                raise NumericalError(f"stage II: the loss became {float(total)} at step {step}")
+            total.backward()
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+            with torch.no_grad():
+                field.normals.data = F.normalize(field.normals.data, dim=1)
+            loss = total.item()
+            if step % 10 == 0 or step == config.iterations:
+                log.append(MaterialLog(step, loss, **terms, seconds=clock() - started))
+            if progress:
+                progress(step, config.iterations, f"material loss {loss:.4f}")
+    except KeyboardInterrupt:
+        interrupted = True
+    return MaterialFit(field, log, interrupted, edges)
+
+
+def edge_tv(maps: torch.Tensor, weight: torch.Tensor, normal_weight: float) -> torch.Tensor:
+    """Mean of w (|grad base color|_1 + lambda_n |grad n|_1) over a stage-II render [h, w, C]
+    (CHANNELS), w = exp(-beta M_edge) [h, w]."""
+    base, normal = maps[..., 3:6], maps[..., 7:10]
+
+    def grad(x: torch.Tensor) -> torch.Tensor:
+        dx = (x[:, 1:] - x[:, :-1]).abs().sum(-1)
+        dy = (x[1:] - x[:-1]).abs().sum(-1)
+        return (weight[:, 1:] * dx).mean() + (weight[1:] * dy).mean()
+
+    return grad(base) + normal_weight * grad(normal)
+
+
+def environment_image(light: list[torch.Tensor], width: int = 256) -> np.ndarray:
+    """The light as a latitude-longitude image [width / 2, width, 3] (z up, the simulator's
+    convention: azimuth from +x, top row the zenith)."""
+    h = width // 2
+    v, u = torch.meshgrid(
+        (torch.arange(h) + 0.5) / h, (torch.arange(width) + 0.5) / width, indexing="ij"
+    )
+    phi, lat = (u - 0.5) * 2 * math.pi, (0.5 - v) * math.pi
+    d = torch.stack([lat.cos() * phi.cos(), lat.cos() * phi.sin(), lat.sin()], -1)
+    with torch.no_grad():
+        return cube_lookup(light[0], d.to(light[0].device)).cpu().numpy()
+
+
+def light_from_image(image: np.ndarray, size: int, device: str = "cpu") -> list[torch.Tensor]:
+    """A latitude-longitude environment image [H, W, 3] (linear RGB, z up) as a light."""
+    d = cube_directions(size)
+    u = (torch.atan2(d[..., 1], d[..., 0]) / (2 * math.pi) + 0.5) * 2 - 1
+    v = (0.5 - torch.asin(d[..., 2].clamp(-1, 1)) / math.pi) * 2 - 1
+    img = torch.as_tensor(np.ascontiguousarray(image), dtype=torch.float32).permute(2, 0, 1)
+    faces = F.grid_sample(
+        img[None].expand(6, -1, -1, -1),
+        torch.stack([u, v], -1),
+        align_corners=False,
+        padding_mode="border",
+    )
+    return mip_chain(faces.clamp(min=0).to(device))
