@@ -8,6 +8,7 @@ import platform
 from pathlib import Path
 
 RESULTS = Path(__file__).resolve().parent / "results"
+SCENES = Path(__file__).resolve().parent.parent / "sim" / "scenes"
 
 
 def machine() -> dict:
@@ -26,3 +27,16 @@ def report(name: str, figures: dict) -> None:
     out = RESULTS / f"{name}.json"
     out.write_text(json.dumps({"benchmark": name, "machine": machine(), **figures}, indent=2))
     print(f"-> {out}")
+
+
+def session_of(scene: str) -> Path:
+    """The simulator's example scene, simulated once into results/sessions/."""
+    from evcap.sim.scene import load_scene
+    from evcap.sim.simulate import simulate
+
+    path = RESULTS / "sessions" / f"{scene}.h5"
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        print(f"simulating {scene} (once) ...", flush=True)
+        simulate(load_scene(SCENES / f"{scene}.toml"), path)
+    return path

@@ -22,13 +22,10 @@ import json
 import tempfile
 from pathlib import Path
 
-from _common import RESULTS, machine
+from _common import RESULTS, machine, session_of
 
 from evcap.recon.reconstruct import reconstruct
-from evcap.sim.scene import load_scene
-from evcap.sim.simulate import simulate
 
-SCENES = Path(__file__).resolve().parent.parent / "sim" / "scenes"
 LABELS = {"preset": "presets", "seed": "fast, other seeds", "sweep": "fast: iterations, scale"}
 COLUMNS = (
     "scene",
@@ -45,18 +42,11 @@ COLUMNS = (
 )
 
 
-def session_of(scene: str) -> Path:
-    path = RESULTS / "sessions" / f"{scene}.h5"
-    if not path.exists():
-        path.parent.mkdir(parents=True, exist_ok=True)
-        print(f"simulating {scene} (once) ...", flush=True)
-        simulate(load_scene(SCENES / f"{scene}.toml"), path)
-    return path
-
-
 def run_one(session: Path, preset: str, device: str, **overrides: object) -> dict:
     with tempfile.TemporaryDirectory() as out:
-        return reconstruct(session, out, preset=preset, device=device, **overrides)
+        return reconstruct(
+            session, out, preset=preset, device=device, stage="radiance", **overrides
+        )
 
 
 def markdown(rows: list[dict]) -> str:

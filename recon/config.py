@@ -74,11 +74,11 @@ class MaterialConfig:
     indirect: str = "auto"
     edge_slice_ms: float = 10.0  # the events warped into each edge map
     edge_frames: int = 48  # views with an edge map; the training frames of stage II
-    lr_base_color: float = 0.01
-    lr_roughness: float = 0.01
-    lr_normals: float = 0.002
-    lr_indirect: float = 0.005
-    lr_light: float = 0.02
+    lr_base_color: float = 0.05
+    lr_roughness: float = 0.05
+    lr_normals: float = 0.01
+    lr_indirect: float = 0.02
+    lr_light: float = 0.05
 
 
 MATERIAL_PRESETS: dict[str, MaterialConfig] = {

@@ -167,7 +167,7 @@ def train_radiance(
     try:
         for step in range(1, config.iterations + 1):
             sh_degree = min(config.sh_degree, (step - 1) // degree_every)
-            frames = _draw_frames(rng, len(data.windows), config)
+            frames = draw_frames(rng, len(data.windows), config)
             renders, total, terms = _losses(field, data, config, frames, sh_degree, step)
             if not torch.isfinite(total):
                 raise NumericalError(f"stage I: the loss became {float(total)} at step {step}")
@@ -198,7 +198,7 @@ def train_radiance(
     return Fit(field, log, interrupted)
 
 
-def _draw_frames(rng: np.random.Generator, frames: int, config: RadianceConfig) -> np.ndarray:
+def draw_frames(rng: np.random.Generator, frames: int, config: RadianceConfig) -> np.ndarray:
     """views_per_step frame indices, increasing, each 1..max_window_frames after the last."""
     gaps = rng.integers(1, config.max_window_frames + 1, config.views_per_step - 1)
     span = int(gaps.sum())
