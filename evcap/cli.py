@@ -433,8 +433,10 @@ def build_parser() -> argparse.ArgumentParser:
         "reconstruct",
         help="recover the scene from a session's events, as 3D Gaussians",
         description="Fit 3D Gaussians to a session's events (its calibration and poses are "
-        "used) and write OUT/gaussians.ply, OUT/renders/, OUT/checkpoint/, OUT/config.toml "
-        "and OUT/metrics.json (with the ground truth of a simulated session).",
+        "used), then their material and the light, and write OUT/gaussians.ply, OUT/renders/ "
+        "(radiance, depth, normals; material/: base color, roughness, shading normals), "
+        "OUT/environment.png, OUT/checkpoint/, OUT/config.toml and OUT/metrics.json (with the "
+        "ground truth of a simulated session).",
     )
     p.add_argument("session", help="the session file (.h5), with /calibration and /poses")
     p.add_argument("-o", "--output", required=True, metavar="OUT", help="the folder to write")
@@ -456,7 +458,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--resolution", type=float, metavar="R", help="render scale relative to the sensor"
     )
-    p.add_argument("--iterations", type=int, metavar="N", help="optimisation steps")
+    p.add_argument("--iterations", type=int, metavar="N", help="stage I steps")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument(
         "--zero-events",
