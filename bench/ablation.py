@@ -6,7 +6,7 @@ bleeding that the simulator's ground truth marks. Writes a table (JSON and Markd
 the method's published means.
 
     .venv/bin/python bench/ablation.py [--scenes single_object multi_object] [--preset tiny]
-        [--device cpu]
+        [--variants full "no visibility" ...] [--material-iterations N] [--device cpu]
 """
 
 from __future__ import annotations
@@ -64,6 +64,8 @@ def main() -> None:
     parser.add_argument("--scenes", nargs="+", default=["single_object", "multi_object"])
     parser.add_argument("--preset", default="tiny")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    parser.add_argument("--material-iterations", type=int, help="stage II steps (preset's)")
     args = parser.parse_args()
     rows, stage_one = [], {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -80,7 +82,8 @@ def main() -> None:
                 "seconds": time.perf_counter() - started,
             }
             full_effects = None
-            for name, settings in VARIANTS.items():
+            for name in args.variants:
+                settings = VARIANTS[name]
                 effect = SWITCHES_EFFECT.get(name)
                 if effect and full_effects is not None and not full_effects[effect]:
                     continue  # the full model left it out already on this scene
@@ -92,6 +95,7 @@ def main() -> None:
                     preset=args.preset,
                     device=args.device,
                     stage="material",
+                    material_iterations=args.material_iterations,
                     overwrite=True,
                     **settings,
                 )
@@ -110,7 +114,8 @@ def main() -> None:
         lines.append(f"| {name} | " + " | ".join(cell(v) for v in values) + " |")
     table = "\n".join(lines) + "\n"
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "ablation.json").write_text(
+    name = "ablation" if args.preset == "tiny" else f"ablation_{args.preset}"
+    (RESULTS / f"{name}.json").write_text(
         json.dumps(
             {
                 "benchmark": "ablation",
@@ -123,9 +128,9 @@ def main() -> None:
             indent=2,
         )
     )
-    (RESULTS / "ablation.md").write_text(table)
+    (RESULTS / f"{name}.md").write_text(table)
     print(table)
-    print(f"-> {RESULTS / 'ablation.json'}, .md")
+    print(f"-> {RESULTS / name}.json, .md")
 
 
 if __name__ == "__main__":
