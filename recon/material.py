@@ -54,8 +54,6 @@ CHANNELS = {"radiance": 3, "base_color": 3, "roughness": 1, "shading_normal": 3}
 # example scene shows them at about 4 % of its opaque pixels
 OCCLUSION_JUMP = 0.1  # relative depth step between neighbouring pixels
 OCCLUDED_SHARE = 0.01
-
-
 NEIGHBOUR_OPACITY = 0.1  # Gaussians fainter than this are not taken as the surface
 
 
@@ -151,12 +149,12 @@ class MaterialField(torch.nn.Module):
 def new_material_field(
     radiance: RadianceField, data: TrainingData, config: MaterialConfig
 ) -> MaterialField:
-    """Stage II's start: normals from the Gaussians' flat axes (facing the cameras), visibility
-    baked when the scene has occluders, base color such that the diffuse shading under the
-    stage-I background as light gives the stage-I radiance."""
+    """Stage II's start: normals from the plane of each Gaussian's neighbours (facing the
+    cameras), visibility baked when the scene has occluders, base color such that the diffuse
+    shading under the stage-I background as light gives the stage-I radiance."""
     g = radiance.gaussians
-    light = Background(radiance.background.faces.shape[-1]).to(g.means.device)
-    light.faces.data.copy_(radiance.background.faces.data)
+    light = Background(radiance.background.faces.shape[-1])
+    light.faces.data.copy_(radiance.background.faces.data.cpu())
     with torch.no_grad():
         if (g.opacities > NEIGHBOUR_OPACITY).sum() >= 3:
             normals = plane_normals(g.means, g.opacities)
@@ -168,16 +166,11 @@ def new_material_field(
         normals = torch.where(
             ((cams - g.means) * normals).sum(1, keepdim=True) < 0, -normals, normals
         )
-    field = MaterialField(g, light, normals, None, False, radiance.backend)
-    if config.visibility == "on" or (config.visibility == "auto" and has_occluders(field, data)):
-        field.visibility_sh = bake_visibility(g)
-    indirect = config.indirect == "on" or (
-        config.indirect == "auto" and field.visibility_sh is not None
-    )
-    if indirect:
-        field.indirect_sh = torch.nn.Parameter(
-            torch.full((len(g), 4, 3), -8.0, device=g.means.device)
-        )
+    occluded = config.visibility == "on" or (config.visibility == "auto" and has_occluders(g, data))
+    visibility = bake_visibility(g) if occluded else None
+    indirect = config.indirect == "on" or (config.indirect == "auto" and occluded)
+    field = MaterialField(g, light, normals.cpu(), visibility, indirect, radiance.backend)
+    field = field.to(g.means.device)
     with torch.no_grad():
         target = g.radiance(cams, 0)
         field.base_logits.zero_()
@@ -209,12 +202,11 @@ def plane_normals(
 
 
 @torch.no_grad()
-def has_occluders(field: MaterialField, data: TrainingData, views: int = 4) -> bool:
+def has_occluders(g: Gaussians, data: TrainingData, views: int = 4) -> bool:
     """Whether surfaces hide one another in the views along the path: depth jumps by more
     than OCCLUSION_JUMP between neighbouring opaque pixels on more than OCCLUDED_SHARE of them.
     (An isolated object's depth is continuous wherever it is opaque; the baked visibility
     itself cannot tell, as a surface with misjudged normals looks into itself.)"""
-    g = field.gaussians
     times = np.linspace(data.windows.frame_times[0], data.windows.frame_times[-1], views)
     jumps = opaque = 0
     for T in data.track.at(times.astype(np.int64)):

@@ -163,7 +163,8 @@ def shade(
         specular = prefiltered(reflect(v, n), roughness) (F0 A + B) * (cos-weighted V)
 
     ``visibility`` [N, K] in [0, 1] at ``directions`` [K, 3] (None: nothing blocks the light);
-    ``indirect`` [N, 3] irradiance from other surfaces, added to the diffuse light."""
+    ``indirect`` [N, 3] irradiance from other surfaces, added to the diffuse light in the share
+    of the hemisphere that the visibility says is blocked."""
     coarse = next(f for f in light if f.shape[-1] <= 8)
     sky = cube_lookup(coarse, directions)  # [K, 3]
     cos = (normals @ directions.T).clamp(min=0)  # [N, K]
@@ -175,7 +176,7 @@ def shade(
         open_cos, spec_vis = cos, torch.ones_like(roughness)
     irradiance = open_cos @ sky * weight
     if indirect is not None:
-        irradiance = irradiance + indirect
+        irradiance = irradiance + indirect * (1 - spec_vis)[:, None]
     ndv = (normals * view).sum(1).clamp(1e-4, 1)
     reflected = F.normalize(2 * ndv[:, None] * normals - view, dim=1)
     specular = prefiltered(light, reflected, roughness) * split_sum(ndv, roughness)[:, None]
