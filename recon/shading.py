@@ -18,18 +18,16 @@ import math
 import torch
 import torch.nn.functional as F
 
-F0 = 0.04  # normal-incidence Fresnel reflectance of a dielectric
+from evcap.sim.lighting import F0, fibonacci_sphere
+from evcap.sim.lighting import dfg_table as sim_dfg_table
+
 MIN_ROUGHNESS = 0.04
 DIFFUSE_DIRECTIONS = 256
 
 
 def fibonacci_directions(n: int) -> torch.Tensor:
-    """[n, 3] nearly uniform unit directions."""
-    k = torch.arange(n, dtype=torch.float64) + 0.5
-    z = 1 - 2 * k / n
-    phi = math.pi * (1 + 5**0.5) * k
-    r = torch.sqrt(1 - z * z)
-    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], 1).float()
+    """[n, 3] nearly uniform unit directions (the simulator's set)."""
+    return torch.from_numpy(fibonacci_sphere(n)).float()
 
 
 def cube_lookup(faces: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
@@ -99,42 +97,10 @@ def prefiltered(levels: list[torch.Tensor], dirs: torch.Tensor, roughness: torch
 
 
 @functools.cache
-def dfg_table(size: int = 32, samples: int = 512) -> torch.Tensor:
-    """The split-sum table [n.v, roughness] -> (A, B): specular = prefiltered * (F0 A + B),
-    integrated by GGX importance sampling on a fixed Hammersley set."""
-    i = torch.arange(samples, dtype=torch.float64)
-    bits = i.to(torch.int64)
-    radical = torch.zeros(samples, dtype=torch.float64)
-    for b in range(16):
-        radical += ((bits >> b) & 1).double() * 2.0 ** (-b - 1)
-    xi1, xi2 = (i + 0.5) / samples, radical
-    grid = (torch.arange(size, dtype=torch.float64) + 0.5) / size
-    table = torch.zeros(size, size, 2, dtype=torch.float64)
-    for a_i, ndv in enumerate(grid):
-        v = torch.tensor([math.sqrt(1 - ndv * ndv), 0.0, float(ndv)], dtype=torch.float64)
-        for r_i, rough in enumerate(grid):
-            a = max(float(rough), MIN_ROUGHNESS) ** 2
-            cos_h = torch.sqrt((1 - xi2) / (1 + (a * a - 1) * xi2))
-            sin_h = torch.sqrt(1 - cos_h**2)
-            phi = 2 * math.pi * xi1
-            h = torch.stack([sin_h * torch.cos(phi), sin_h * torch.sin(phi), cos_h], 1)
-            vdh = h @ v
-            light = 2 * vdh[:, None] * h - v
-            ndl = light[:, 2].clamp(0, 1)
-            ok = ndl > 0
-            g = smith_g(float(ndv), ndl[ok], a)
-            g_vis = g * vdh[ok] / (h[ok, 2] * ndv).clamp(min=1e-12)
-            fc = (1 - vdh[ok]) ** 5
-            table[a_i, r_i, 0] = ((1 - fc) * g_vis).sum() / samples
-            table[a_i, r_i, 1] = (fc * g_vis).sum() / samples
-    return table.float()
-
-
-def smith_g(ndv, ndl, alpha: float):
-    k = alpha * alpha
-    gv = 2 * ndv / (ndv + math.sqrt(k + (1 - k) * ndv * ndv))
-    gl = 2 * ndl / (ndl + torch.sqrt(k + (1 - k) * ndl * ndl))
-    return gv * gl
+def dfg_table() -> torch.Tensor:
+    """The split-sum table [n.v, roughness] -> (A, B): specular = prefiltered * (F0 A + B);
+    the simulator's, integrated by GGX importance sampling on a fixed Hammersley set."""
+    return torch.from_numpy(sim_dfg_table(32, 512)).float()
 
 
 def split_sum(ndv: torch.Tensor, roughness: torch.Tensor) -> torch.Tensor:
