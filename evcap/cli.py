@@ -298,6 +298,38 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from evcap.calib.board import DEFAULT_BOARD, parse_board, write_board_image
+
+    board = parse_board(args.board) if args.board else DEFAULT_BOARD
+    if args.print_board:
+        width_mm, height_mm = write_board_image(board, args.print_board, dpi=args.dpi)
+        print(
+            f"{args.print_board}: {board.describe()}; print at 100 % ({args.dpi} dpi): "
+            f"{width_mm:.0f} x {height_mm:.0f} mm"
+        )
+        if args.session is None:
+            return 0
+    if args.session is None:
+        raise InputError("give the session to calibrate (or only --print-board OUT.png)")
+    from evcap.calib.calibrate import calibrate, write_calibration
+
+    cal = calibrate(
+        args.session, board=board, skip=frozenset(args.skip or ()), say=lambda line: print(line)
+    )
+    for path in [args.session, *(args.apply_to or ())]:
+        write_calibration(path, cal)
+    print(cal.summary())
+    targets = ", ".join(str(p) for p in [args.session, *(args.apply_to or ())])
+    print(f"written to /calibration of {targets}")
+    if args.report:
+        from evcap.calib.report import write_report
+
+        write_report(cal, args.report)
+        print(f"{args.report}: maps of the thresholds, hot pixels and reprojection errors")
+    return 0
+
+
 # --without: the switches of the method's ablations
 ABLATION_FLAGS = {"anchor": "anchor", "edge-tv": "tv", "distillation": "distill"}
 
@@ -428,6 +460,39 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("-f", "--force", action="store_true", help="overwrite the output file")
     p.set_defaults(run=_cmd_simulate)
+
+    p = sub.add_parser(
+        "calibrate",
+        help="measure the sensor: intrinsics, thresholds, hot pixels, noise",
+        description="Measure what a recording allows about its sensor and write it to the "
+        "session's /calibration: intrinsics and distortion from a ChArUco board in the APS "
+        "frames (or in frames made from the events when there are none), per-pixel ON and OFF "
+        "contrast thresholds from the APS frames against the events, hot pixels, the "
+        "background activity and shot noise rates, and the refractory period.",
+    )
+    p.add_argument("session", nargs="?", help="the session file (.h5) to calibrate")
+    p.add_argument(
+        "--board",
+        metavar="charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT",
+        help="the ChArUco board filmed (default: the board of --print-board, "
+        "charuco:7x5:0.04:0.03:DICT_4X4_50)",
+    )
+    p.add_argument(
+        "--apply-to",
+        nargs="+",
+        metavar="S2",
+        help="also write the calibration to these sessions (same camera and biases)",
+    )
+    p.add_argument(
+        "--skip",
+        action="append",
+        choices=["intrinsics", "thresholds"],
+        help="do not measure this part; keep what the session holds (repeatable)",
+    )
+    p.add_argument("--report", metavar="OUT.png", help="write maps of the calibration")
+    p.add_argument("--print-board", metavar="OUT.png", help="write the board as an image to print")
+    p.add_argument("--dpi", type=int, default=300, help="--print-board's resolution")
+    p.set_defaults(run=_cmd_calibrate)
 
     p = sub.add_parser(
         "reconstruct",

@@ -28,6 +28,10 @@ class SessionFormatError(InputError):
     """A session file is not valid: wrong schema, missing datasets, corrupt or truncated."""
 
 
+class CalibrationError(InputError):
+    """A calibration the recording cannot give (no board seen, too little data)."""
+
+
 class ForeignFormatError(InputError):
     """A file to import is not in the expected format, or is corrupt or truncated."""
 

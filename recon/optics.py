@@ -61,7 +61,8 @@ class SensorOptics:
         model = str(g.attrs.get("distortion_model", "none"))
         if model not in ("none", "radtan", "equidistant"):
             raise InputError(f"{session.path}: unknown distortion model {model!r}")
-        dist = np.asarray(g["distortion"][:], np.float64) if "distortion" in g else np.zeros(0)
+        name = "dist" if "dist" in g else "distortion"  # "distortion": the name before `dist`
+        dist = np.asarray(g[name][:], np.float64) if name in g else np.zeros(0)
         return cls(w, h, K, model, dist, s.color_filter, on, off, hot)
 
     def undistorted(self) -> np.ndarray:

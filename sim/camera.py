@@ -34,6 +34,8 @@ def _yaml(path: Path) -> dict:
 def load_calibration(path: str | Path) -> CameraSpec:
     """Intrinsics and distortion from a ROS camera_info, Kalibr camchain or VINS YAML file."""
     path = Path(path)
+    if path.suffix in (".h5", ".hdf5"):
+        return _session_calibration(path)
     d = _yaml(path)
     name = path.name
     if "camera_matrix" in d:  # ROS camera_info
@@ -67,6 +69,26 @@ def load_calibration(path: str | Path) -> CameraSpec:
         model,
         tuple(float(v) for v in dist),
         source=name,
+    )
+
+
+def _session_calibration(path: Path) -> CameraSpec:
+    """The intrinsics of an evcap session's /calibration (measured by `evcap calibrate`)."""
+    from evcap.session import Session
+
+    with Session.open(path, validate=False) as s:
+        if "calibration" not in s.groups or "K" not in s.group("calibration"):
+            raise InputError(f"{path} has no intrinsics (/calibration/K): run evcap calibrate")
+        g = s.group("calibration")
+        K = g["K"][()]
+        name = "dist" if "dist" in g else "distortion"
+        dist = tuple(float(v) for v in g[name][()]) if name in g else ()
+        model = str(g.attrs.get("distortion_model", "none"))
+        w, h = s.sensor.width, s.sensor.height
+    if not (np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0):
+        raise InputError(f"{path}: /calibration/K is not a valid intrinsic matrix")
+    return CameraSpec(
+        w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), model, dist, path.name
     )
 
 

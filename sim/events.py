@@ -110,33 +110,39 @@ class PixelArray:
     def __init__(
         self,
         n_pixels: int,
-        threshold_on: float,
-        threshold_off: float,
+        threshold_on: float | np.ndarray,
+        threshold_off: float | np.ndarray,
         effects: dict,
         rng: np.random.Generator,
+        hot_pixels: np.ndarray | None = None,
     ) -> None:
+        """Thresholds: one for all pixels or one per pixel (a measured calibration's maps);
+        ``hot_pixels``: which pixels are hot (flat indices; None: drawn at random)."""
         self.n = n_pixels
         self.effects = effects
         self.rng = rng
+        on = np.broadcast_to(np.asarray(threshold_on, np.float64), (n_pixels,))
+        off = np.broadcast_to(np.asarray(threshold_off, np.float64), (n_pixels,))
         spread = effects.get("threshold_spread")
         if spread:
             sigma = spread["sigma"]
-            self.con = np.maximum(rng.normal(threshold_on, sigma, n_pixels), 0.01)
-            self.coff = np.maximum(rng.normal(threshold_off, sigma, n_pixels), 0.01)
+            self.con = np.maximum(rng.normal(on, sigma, n_pixels), 0.01)
+            self.coff = np.maximum(rng.normal(off, sigma, n_pixels), 0.01)
         else:
-            self.con = np.full(n_pixels, threshold_on)
-            self.coff = np.full(n_pixels, threshold_off)
+            self.con = on.copy()
+            self.coff = off.copy()
         ba = effects.get("background_activity")
         if ba:
             self.leak = ba["rate_hz"] * 10 ** rng.normal(0, 0.1, n_pixels)
         else:
             self.leak = np.zeros(n_pixels)
         hot = effects.get("hot_pixels")
-        self.hot = (
-            rng.choice(n_pixels, size=min(hot["count"], n_pixels), replace=False)
-            if hot
-            else np.zeros(0, np.int64)
-        )
+        if hot_pixels is not None:
+            self.hot = np.asarray(hot_pixels, np.int64)
+        elif hot:
+            self.hot = rng.choice(n_pixels, size=min(hot["count"], n_pixels), replace=False)
+        else:
+            self.hot = np.zeros(0, np.int64)
         self.refractory_us = float(effects.get("refractory", {}).get("period_us", 0))
         cutoff = effects.get("bandwidth", {}).get("cutoff_hz", 0.0)
         self.tau_us = 1e6 / (2 * np.pi * cutoff) if cutoff > 0 else 0.0

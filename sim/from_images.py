@@ -287,7 +287,7 @@ def simulate_from_images(
         "calibration",
         {
             "K": data.K,
-            "distortion": np.zeros(0),
+            "dist": np.zeros(0),
             "threshold_on": datasets["threshold_on"],
             "threshold_off": datasets["threshold_off"],
             "hot_pixels": np.zeros((h, w), np.uint8),
@@ -297,7 +297,7 @@ def simulate_from_images(
             "distortion_model": "none",
             "width": w,
             "height": h,
-            "reprojection_error_px": 0.0,
+            "rms_reprojection_px": 0.0,
         },
     )
     return n_events

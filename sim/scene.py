@@ -92,6 +92,9 @@ class SensorSpec:
     threshold_off: float = 0.2
     dark_level: float = 1e-3  # added to the radiance before the log (the dark current)
     effects: dict = field(default_factory=dict)  # name -> parameters, see EFFECTS
+    # a calibrated session (`evcap calibrate`) whose measured sensor this one copies: per-pixel
+    # thresholds, hot pixels, noise rates, refractory period (effects listed here win)
+    calibration: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -297,6 +300,7 @@ def load_scene(path: str | os.PathLike) -> Scene:
 
     sensor_t = top.table("sensor")
     c = sensor_t.get("contrast_threshold", float, 0.2)
+    cal = sensor_t.get("calibration", str)
     effects = {}
     for name, params in sensor_t.get("effects", dict, {}).items():
         if name not in EFFECTS:
@@ -318,6 +322,7 @@ def load_scene(path: str | os.PathLike) -> Scene:
         ),
         dark_level=_positive(sensor_t.where, "dark_level", sensor_t.get("dark_level", float, 1e-3)),
         effects=effects,
+        calibration=_resolve(base, cal, f"{sensor_t.where}: calibration") if cal else None,
     )
     sensor_t.done()
 

@@ -3,8 +3,11 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
+from evcap.errors import InputError
 from evcap.events import pixel_channels
 from evcap.sim.scene import ApsSpec, ImuSpec
 
@@ -54,3 +57,39 @@ def imu_samples(
     accel = accel + rng.normal(0, spec.accel_noise, accel.shape) if spec.accel_noise else accel
     gyro = gyro + rng.normal(0, spec.gyro_noise, gyro.shape) if spec.gyro_noise else gyro
     return np.round(t * 1e6).astype(np.int64), accel, gyro, np.full(n, 25.0)
+
+
+def measured_sensor(
+    path: Path, effects: dict, n_pixels: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """(threshold ON, OFF per pixel, hot pixels (flat indices), effects) of the sensor that a
+    calibrated session measured (`evcap calibrate`); ``effects`` the scene lists win."""
+    from evcap.session import Session
+
+    with Session.open(path, validate=False) as s:
+        if "calibration" not in s.groups:
+            raise InputError(f"{path} has no /calibration: run evcap calibrate on it first")
+        g = s.group("calibration")
+        missing = [k for k in ("threshold_on", "threshold_off") if k not in g]
+        if missing:
+            raise InputError(f"{path}: /calibration has no {', '.join(missing)}")
+        on, off = g["threshold_on"][()].ravel(), g["threshold_off"][()].ravel()
+        hot_map = g["hot_pixels"][()].ravel().astype(bool) if "hot_pixels" in g else None
+        rate = g["event_rate_hz"][()].ravel() if "event_rate_hz" in g else None
+        a = dict(g.attrs)
+    if on.size != n_pixels:
+        raise InputError(f"{path}: its calibration has {on.size} pixels, the camera {n_pixels}")
+    if not (np.isfinite(on).all() and np.isfinite(off).all() and on.min() > 0 and off.min() > 0):
+        raise InputError(f"{path}: /calibration's thresholds must be positive numbers")
+    hot = np.flatnonzero(hot_map) if hot_map is not None else np.zeros(0, np.int64)
+    measured = {
+        "background_activity": {"rate_hz": float(a.get("background_activity_hz", 0.0))},
+        "shot_noise": {"rate_hz": float(a.get("shot_noise_hz", 0.0))},
+        "refractory": {"period_us": int(a.get("refractory_period_us", 0))},
+    }
+    if len(hot):
+        hot_rate = float(np.median(rate[hot])) if rate is not None else 200.0
+        measured["hot_pixels"] = {"count": len(hot), "rate_hz": hot_rate}
+    out = {k: v for k, v in measured.items() if next(iter(v.values())) > 0}
+    out.update(effects)
+    return on.astype(np.float64), off.astype(np.float64), hot, out

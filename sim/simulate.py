@@ -25,7 +25,7 @@ from evcap.session import SensorInfo, SessionWriter, write_group
 from evcap.sim.events import PixelArray
 from evcap.sim.render import Renderer
 from evcap.sim.scene import Scene
-from evcap.sim.sensor import ChannelMap, aps_frame, imu_samples
+from evcap.sim.sensor import ChannelMap, aps_frame, imu_samples, measured_sensor
 from evcap.sim.trajectory import Trajectory, look_at
 from evcap.streams import Frames, ImuSamples, TriggerKind, Triggers
 
@@ -87,17 +87,22 @@ class Simulator:
             self.trajectory = Trajectory(scene.trajectory, self.seed)
             s = scene.sensor
             self.channels = ChannelMap(self.camera.width, self.camera.height, s.color_filter)
-            self.pixels = PixelArray(
-                self.camera.width * self.camera.height,
-                s.threshold_on,
-                s.threshold_off,
-                s.effects,
-                self.rng,
-            )
+            n = self.camera.width * self.camera.height
+            if s.calibration is None:
+                self.pixels = PixelArray(n, s.threshold_on, s.threshold_off, s.effects, self.rng)
+            else:
+                on, off, hot, effects = measured_sensor(s.calibration, s.effects, n)
+                self.pixels = PixelArray(n, on, off, effects, self.rng, hot_pixels=hot)
+            self.effects = self.pixels.effects
             # points of the scene, to bound the image motion
             v = self.renderer.mesh.vertices
             self._motion_points = v[self.rng.choice(len(v), min(len(v), 4000), replace=False)]
-        self.threshold = scene.max_step_log * min(s.threshold_on, s.threshold_off)
+        low = (
+            min(s.threshold_on, s.threshold_off)
+            if s.calibration is None
+            else min(np.median(self.pixels.con), np.median(self.pixels.coff))
+        )
+        self.threshold = scene.max_step_log * low
 
     # -- sampling --------------------------------------------------------------------------------
 
@@ -205,7 +210,7 @@ class Simulator:
         width = self.camera.width
         aps = self._aps_times()
         pending: list[tuple] = []  # events not yet safe to write (jitter may reorder them)
-        jitter = scene.sensor.effects.get("timestamp_jitter", {}).get("sigma_us", 0.0)
+        jitter = self.effects.get("timestamp_jitter", {}).get("sigma_us", 0.0)
         t = 0.0
         v = self._key(t)
         self.pixels.start(v, t)
@@ -402,7 +407,7 @@ def simulate(
         "scene": scene.name,
         "scene_file": str(scene.path),
         "seed": sim.seed,
-        "effects": json.dumps(scene.sensor.effects),
+        "effects": json.dumps(sim.effects),
     }
     with SessionWriter(output, sensor, attrs=attrs, overwrite=overwrite) as writer:
         stats = sim.run(writer)
@@ -419,7 +424,7 @@ def simulate(
             "interpolation": "linear position, slerp rotation",
         },
     )
-    s = scene.sensor
+    effects = sim.effects
     hot = np.zeros(cam.width * cam.height, np.uint8)
     hot[sim.pixels.hot] = 1
     write_group(
@@ -427,7 +432,7 @@ def simulate(
         "calibration",
         {
             "K": cam.K,
-            "distortion": np.asarray(scene.camera.distortion, np.float64),
+            "dist": np.asarray(scene.camera.distortion, np.float64),
             "threshold_on": data["threshold_on"],
             "threshold_off": data["threshold_off"],
             "hot_pixels": hot.reshape(cam.height, cam.width),
@@ -437,12 +442,12 @@ def simulate(
             "distortion_model": scene.camera.distortion_model,
             "width": cam.width,
             "height": cam.height,
-            "refractory_period_us": float(s.effects.get("refractory", {}).get("period_us", 0)),
+            "refractory_period_us": float(effects.get("refractory", {}).get("period_us", 0)),
             "background_activity_hz": float(
-                s.effects.get("background_activity", {}).get("rate_hz", 0)
+                effects.get("background_activity", {}).get("rate_hz", 0)
             ),
-            "shot_noise_hz": float(s.effects.get("shot_noise", {}).get("rate_hz", 0)),
-            "reprojection_error_px": 0.0,
+            "shot_noise_hz": float(effects.get("shot_noise", {}).get("rate_hz", 0)),
+            "rms_reprojection_px": 0.0,
         },
     )
     if fixture is not None:

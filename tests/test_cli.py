@@ -9,7 +9,16 @@ def test_help_lists_every_command_with_one_line():
     assert r.returncode == 0
     lines = r.stdout.split("commands:")[1].strip().splitlines()[1:]
     names = [line.split()[0] for line in lines]
-    assert names == ["import", "info", "devices", "record", "monitor", "simulate", "reconstruct"]
+    assert names == [
+        "import",
+        "info",
+        "devices",
+        "record",
+        "monitor",
+        "simulate",
+        "calibrate",
+        "reconstruct",
+    ]
     assert all(len(line.split()) > 2 for line in lines)
 
 

@@ -1,0 +1,334 @@
+"""`evcap calibrate`: what a recording allows to measure about its sensor (intrinsics and
+distortion, per-pixel contrast thresholds, hot pixels, noise, refractory period), written to
+the session's /calibration group with the biases it was measured under."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from evcap.calib.board import DEFAULT_BOARD, Board
+from evcap.calib.intrinsics import IntrinsicsResult, calibrate_intrinsics
+from evcap.calib.noise import NoiseStats, measure_noise
+from evcap.calib.thresholds import DATASHEET_THRESHOLDS, ThresholdFit, fit_thresholds
+from evcap.errors import CalibrationError, InputError
+from evcap.session import Session, write_group
+
+PARTS = ("intrinsics", "thresholds", "noise")
+# Frames of the board made from the events when the recording has no APS frames: rate and
+# high-pass corner measured on the simulated hand-held sweep (50 Hz, 3 Hz: 40 views, focal length
+# within 0.5 %; 20 Hz: the board smeared, found in a third as many frames); slower motion wants
+# a lower corner, faster a higher one, so each is tried
+EVENT_FRAME_HZ = 50.0
+EVENT_FRAME_CUTOFFS_HZ = (1.0, 3.0, 10.0)
+MIN_EVENTS = 1000
+UNCERTAIN_F = 0.005  # a focal length standard deviation above this share gets a warning
+
+
+@dataclass
+class Calibration:
+    """What a calibration holds; `datasets()` and `attrs()` are the /calibration group."""
+
+    width: int
+    height: int
+    K: np.ndarray  # 3 x 3, pixels
+    dist: np.ndarray  # coefficients of distortion_model (OpenCV order)
+    distortion_model: str  # "none", "radtan"
+    intrinsics_source: str  # "APS frames", "event frames", or what was kept
+    threshold_on: np.ndarray  # [H, W] float32, log units
+    threshold_off: np.ndarray
+    threshold_source: str
+    threshold_confidence: np.ndarray | None  # [H, W] 0..1; None: not fitted
+    noise: NoiseStats
+    intrinsics: IntrinsicsResult | None = None
+    thresholds: ThresholdFit | None = None
+    board: Board | None = None
+    biases: dict | None = None  # bias codes in force while recording; None: not recorded
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def rms_reprojection_px(self) -> float:
+        return float(self.intrinsics.rms_px) if self.intrinsics else float("nan")
+
+    def datasets(self) -> dict[str, np.ndarray]:
+        h, w = self.height, self.width
+        out = {
+            "K": np.asarray(self.K, np.float64),
+            "dist": np.asarray(self.dist, np.float64),
+            "threshold_on": self.threshold_on.astype(np.float32),
+            "threshold_off": self.threshold_off.astype(np.float32),
+            "hot_pixels": self.noise.hot_pixels.astype(np.uint8),
+            "event_rate_hz": self.noise.rate_hz.astype(np.float32),
+        }
+        if self.threshold_confidence is not None:
+            out["threshold_confidence"] = self.threshold_confidence.astype(np.float32)
+        else:
+            out["threshold_confidence"] = np.zeros((h, w), np.float32)
+        if self.intrinsics is not None:
+            v = self.intrinsics.per_view
+            out["view_t"] = np.array([row[0] for row in v], np.int64)
+            out["view_rms_px"] = np.array([row[1] for row in v], np.float64)
+            out["view_corners"] = np.array([row[2] for row in v], np.int64)
+        return out
+
+    def summary(self) -> str:
+        """What was measured, for a person, a few lines."""
+        lines = []
+        if self.intrinsics is not None:
+            i, K = self.intrinsics, self.K
+            reasons: dict[str, int] = {}
+            for _, r in i.rejected:
+                reasons[r.split(" (")[0]] = reasons.get(r.split(" (")[0], 0) + 1
+            lines.append(
+                f"intrinsics ({self.intrinsics_source}, {len(i.per_view)} views): fx {K[0, 0]:.2f} "
+                f"fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f} px, {self.distortion_model} "
+                f"{' '.join(f'{d:+.4f}' for d in self.dist)}; RMS reprojection "
+                f"{i.rms_px:.3f} px"
+            )
+            if reasons:
+                lines.append(
+                    "  views not used: " + ", ".join(f"{n} {r}" for r, n in reasons.items())
+                )
+        else:
+            lines.append(f"intrinsics: {self.intrinsics_source}")
+        if self.thresholds is not None:
+            t = self.thresholds
+            means = ", ".join(f"{k} {v[0]:.3f}/{v[1]:.3f}" for k, v in t.channel_means.items())
+            lines.append(
+                f"thresholds ON/OFF ({self.threshold_source}): {means} log units; "
+                f"{(t.confidence >= 0.5).mean():.0%} of pixels fitted with confidence, "
+                "the others take their channel's mean"
+            )
+        else:
+            lines.append(
+                f"thresholds ({self.threshold_source}): ON {self.threshold_on.mean():.3f}, "
+                f"OFF {self.threshold_off.mean():.3f} log units"
+            )
+        n = self.noise
+        lines.append(
+            f"hot pixels: {int(n.hot_pixels.sum())}; background activity "
+            f"{n.background_activity_hz:.3g} Hz and shot noise {n.shot_noise_hz:.3g} Hz per "
+            f"pixel; refractory period {n.refractory_period_us:.0f} us"
+        )
+        lines.append("biases: " + ("as recorded in the session" if self.biases else "not recorded"))
+        lines += [f"warning: {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+    def attrs(self) -> dict:
+        n = self.noise
+        a = {
+            "source": "evcap calibrate",
+            "distortion_model": self.distortion_model,
+            "width": self.width,
+            "height": self.height,
+            "intrinsics_source": self.intrinsics_source,
+            "threshold_source": self.threshold_source,
+            "rms_reprojection_px": self.rms_reprojection_px,
+            "intrinsics_std_px": (self.intrinsics.std if self.intrinsics else np.full(4, np.nan)),
+            "refractory_period_us": float(n.refractory_period_us),
+            "background_activity_hz": float(n.background_activity_hz),
+            "shot_noise_hz": float(n.shot_noise_hz),
+            "hot_pixel_count": int(n.hot_pixels.sum()),
+            "biases": json.dumps(self.biases) if self.biases is not None else "not recorded",
+        }
+        if self.board is not None:
+            a["board"] = json.dumps(self.board.to_attrs())
+        if self.intrinsics is not None:
+            a["rejected_views"] = json.dumps(
+                [{"t_us": int(t), "reason": r} for t, r in self.intrinsics.rejected]
+            )
+        if self.thresholds is not None:
+            t = self.thresholds
+            a["threshold_channel_means"] = json.dumps(
+                {k: [float(v[0]), float(v[1])] for k, v in t.channel_means.items()}
+            )
+            a["threshold_confident_share"] = float((t.confidence >= 0.5).mean())
+        if self.warnings:
+            a["warnings"] = json.dumps(self.warnings)
+        return a
+
+
+def calibrate(
+    path: str | Path,
+    *,
+    board: Board = DEFAULT_BOARD,
+    skip: frozenset[str] = frozenset(),
+    say: Callable[[str], None] = lambda line: None,
+) -> Calibration:
+    """Measure what the session at ``path`` allows. ``skip``: parts of PARTS not to measure
+    (what the session's /calibration already holds is kept for them)."""
+    unknown = set(skip) - set(PARTS)
+    if unknown:
+        raise InputError(f"unknown calibration parts {sorted(unknown)}; known: {', '.join(PARTS)}")
+    with Session.open(path) as s:
+        sensor = s.sensor
+        events = s.events()
+        frames = s.frames()
+        old = _stored(s)
+        biases, changed = _biases(s)
+    w, h = sensor.width, sensor.height
+    if len(events) < MIN_EVENTS:
+        raise CalibrationError(
+            f"{path}: {len(events)} events; calibrating the sensor needs at least {MIN_EVENTS:,} "
+            "(record longer, with the camera moving)"
+        )
+    warnings = []
+    if changed:
+        warnings.append(
+            f"biases changed while recording ({', '.join(changed)}): "
+            "the thresholds hold for a mix of settings"
+        )
+
+    say("noise: hot pixels, background activity, refractory period")
+    noise = measure_noise(events, frames if len(frames) else None)
+
+    cal_thresholds = None
+    if "thresholds" in skip and old.get("threshold_on") is not None:
+        on, off, t_source = old["threshold_on"], old["threshold_off"], old["threshold_source"]
+        confidence = old.get("threshold_confidence")
+    elif "thresholds" not in skip and len(frames) >= 3:
+        say(f"thresholds: {len(frames)} APS frames against {len(events):,} events")
+        cal_thresholds = fit_thresholds(
+            events,
+            frames,
+            sensor.color_filter,
+            exclude=noise.hot_pixels,
+            refractory_us=noise.refractory_period_us,
+        )
+        on, off, t_source = cal_thresholds.on, cal_thresholds.off, "APS frames vs events"
+        confidence = cal_thresholds.confidence
+    else:
+        on = np.full((h, w), DATASHEET_THRESHOLDS[0], np.float32)
+        off = np.full((h, w), DATASHEET_THRESHOLDS[1], np.float32)
+        t_source = "datasheet (no APS frames to measure them)"
+        confidence = None
+        if "thresholds" not in skip:
+            warnings.append("no APS frames: the thresholds are the datasheet's, not measured")
+
+    intrinsics = None
+    if "intrinsics" in skip:
+        if old.get("K") is None:
+            warnings.append("no intrinsics: --skip intrinsics and none stored before")
+        K, dist, model = old.get("K"), old.get("dist", np.zeros(0)), old.get("model", "none")
+        i_source = old.get("intrinsics_source", "not measured")
+    else:
+        if len(frames):
+            say(f"intrinsics: the board in {len(frames)} APS frames")
+            images, times, i_source = frames.data, frames.t + frames.exposure_us // 2, "APS frames"
+        else:
+            say(f"intrinsics: the board in event frames at {EVENT_FRAME_HZ:g} Hz")
+            images, times = _event_images(events, on, off, noise.hot_pixels, board)
+            i_source = "event frames"
+        intrinsics = calibrate_intrinsics(images, times, sensor.color_filter, board)
+        K, dist, model = intrinsics.K, intrinsics.dist, intrinsics.distortion_model
+        spread = float(np.max(intrinsics.std[:2] / np.diag(K)[:2]))
+        if spread > UNCERTAIN_F:
+            warnings.append(
+                f"the views leave the focal length uncertain by {spread:.1%}: move the board "
+                "over the whole image, nearer and farther, tilted up to 45 degrees"
+            )
+    if K is None:
+        K = np.zeros((3, 3))
+    return Calibration(
+        width=w,
+        height=h,
+        K=K,
+        dist=np.asarray(dist, np.float64),
+        distortion_model=model,
+        intrinsics_source=i_source,
+        threshold_on=np.asarray(on, np.float32),
+        threshold_off=np.asarray(off, np.float32),
+        threshold_source=t_source,
+        threshold_confidence=confidence,
+        noise=noise,
+        intrinsics=intrinsics,
+        thresholds=cal_thresholds,
+        board=board if intrinsics is not None else None,
+        biases=biases,
+        warnings=warnings,
+    )
+
+
+def write_calibration(path: str | Path, cal: Calibration) -> None:
+    """Replace the session's /calibration with ``cal`` (checked against its sensor size)."""
+    with Session.open(path) as s:
+        size = (s.sensor.width, s.sensor.height)
+        biases, _ = _biases(s)
+    if size != (cal.width, cal.height):
+        raise InputError(
+            f"{path}: its sensor is {size[0]} x {size[1]}, the calibration is for "
+            f"{cal.width} x {cal.height}"
+        )
+    attrs = cal.attrs()
+    if cal.biases is not None and biases is not None and biases != cal.biases:
+        differ = sorted(
+            k for k in set(biases) | set(cal.biases) if biases.get(k) != cal.biases.get(k)
+        )
+        attrs["warnings"] = json.dumps(
+            [*cal.warnings, f"{path} was recorded under other biases ({', '.join(differ)})"]
+        )
+    write_group(path, "calibration", cal.datasets(), attrs, replace=True)
+
+
+def _stored(s: Session) -> dict:
+    """What the session's /calibration holds now (kept for the parts not measured)."""
+    if "calibration" not in s.groups:
+        return {}
+    g = s.group("calibration")
+    out = {}
+    if "K" in g:
+        out["K"] = g["K"][()]
+        name = "dist" if "dist" in g else "distortion"
+        out["dist"] = g[name][()] if name in g else np.zeros(0)
+        out["model"] = str(g.attrs.get("distortion_model", "none"))
+        out["intrinsics_source"] = f"kept ({g.attrs.get('source', 'unknown')})"
+    if "threshold_on" in g and "threshold_off" in g:
+        out["threshold_on"] = g["threshold_on"][()]
+        out["threshold_off"] = g["threshold_off"][()]
+        out["threshold_source"] = f"kept ({g.attrs.get('source', 'unknown')})"
+        if "threshold_confidence" in g:
+            out["threshold_confidence"] = g["threshold_confidence"][()]
+    return out
+
+
+def _biases(s: Session) -> tuple[dict | None, list[str]]:
+    """(the bias codes at the start of the recording or None, the biases changed during it)."""
+    raw = s.attrs.get("biases")
+    biases = json.loads(raw) if raw else None
+    changed = sorted(
+        {name.removeprefix("bias.") for _, name, _ in s.settings_log() if name.startswith("bias.")}
+    )
+    return biases, changed
+
+
+def _event_images(events, on, off, hot, board: Board) -> tuple[np.ndarray, np.ndarray]:
+    """Pseudo-APS frames (10-bit, linear) from the events, for finding the board: made with
+    each of EVENT_FRAME_CUTOFFS_HZ, keeping those in which the board shows most often (the
+    corner that suits depends on how fast the camera moves)."""
+    from evcap.calib.intrinsics import MIN_CORNERS, detect_board, frame_to_gray
+    from evcap.poses.filter_frames import high_pass_frames
+
+    step = int(1e6 / EVENT_FRAME_HZ)
+    times = np.arange(int(events.t[0]) + step, int(events.t[-1]), step, dtype=np.int64)
+    if len(times) == 0:
+        raise CalibrationError(
+            f"the events span {(events.t[-1] - events.t[0]) / 1e6:.2f} s: too short to make "
+            "frames of the board from them"
+        )
+    best, best_views = None, -1
+    for cutoff in EVENT_FRAME_CUTOFFS_HZ:
+        log_change = high_pass_frames(
+            events, times, cutoff_hz=cutoff, threshold_on=on, threshold_off=off, exclude=hot
+        )
+        images = np.clip(512 * np.exp(log_change), 0, 1023).astype(np.uint16)
+        views = sum(
+            len(detect_board(frame_to_gray(im, events.color_filter), board)[1]) >= MIN_CORNERS
+            for im in images
+        )
+        if views > best_views:
+            best, best_views = images, views
+    return best, times
