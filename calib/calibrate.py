@@ -24,7 +24,7 @@ PARTS = ("intrinsics", "thresholds", "noise")
 # within 0.5 %; 20 Hz: the board smeared, found in a third as many frames); slower motion wants
 # a lower corner, faster a higher one, so each is tried
 EVENT_FRAME_HZ = 50.0
-EVENT_FRAME_CUTOFFS_HZ = (1.0, 3.0, 10.0)
+EVENT_FRAME_CUTOFFS_HZ = (0.3, 1.0, 3.0, 10.0)
 MIN_EVENTS = 1000
 UNCERTAIN_F = 0.005  # a focal length standard deviation above this share gets a warning
 
@@ -202,12 +202,11 @@ def calibrate(
         on, off, t_source = cal_thresholds.on, cal_thresholds.off, "APS frames vs events"
         confidence = cal_thresholds.confidence
     else:
-        on = np.full((h, w), DATASHEET_THRESHOLDS[0], np.float32)
-        off = np.full((h, w), DATASHEET_THRESHOLDS[1], np.float32)
-        t_source = "datasheet (no APS frames to measure them)"
+        on, off = _balanced_thresholds(events, noise.hot_pixels)
+        t_source = "no APS frames: the datasheet's mean level, ON/OFF ratio from the event counts"
         confidence = None
         if "thresholds" not in skip:
-            warnings.append("no APS frames: the thresholds are the datasheet's, not measured")
+            warnings.append("no APS frames: the thresholds are not measured per pixel")
 
     intrinsics = None
     if "intrinsics" in skip:
@@ -303,6 +302,20 @@ def _biases(s: Session) -> tuple[dict | None, list[str]]:
         {name.removeprefix("bias.") for _, name, _ in s.settings_log() if name.startswith("bias.")}
     )
     return biases, changed
+
+
+def _balanced_thresholds(events, hot) -> tuple[np.ndarray, np.ndarray]:
+    """Uniform thresholds at the datasheet's mean level whose ON/OFF ratio balances the event
+    counts: a scene that comes back to the same brightness gives C_on N_on = C_off N_off.
+    (The ratio matters: frames integrated from the events drift with a wrong one.)"""
+    keep = ~hot[events.y, events.x]
+    n_on = max(int(events.p[keep].sum()), 1)
+    n_off = max(int(keep.sum()) - n_on, 1)
+    level = float(np.mean(DATASHEET_THRESHOLDS))
+    shape = (events.height, events.width)
+    on = np.full(shape, 2 * level * n_off / (n_on + n_off), np.float32)
+    off = np.full(shape, 2 * level * n_on / (n_on + n_off), np.float32)
+    return on, off
 
 
 def _event_images(events, on, off, hot, board: Board) -> tuple[np.ndarray, np.ndarray]:

@@ -31,6 +31,9 @@ DISTORTION_MODELS = ("radtan", "none")
 
 MIN_CORNERS = 8  # per view; fewer constrain a homography (8 unknowns) too weakly
 MIN_VIEWS = 6  # below this the focal length and the distortion trade off freely
+# The fit's spread falls with every distinct view (simulated sweep, 75 frames: std of cy 0.59 px
+# with 40 views, 0.39 px with all 75) and calibrateCamera on 100 views takes about a second.
+MAX_VIEWS = 100
 WHITE_PERCENTILE = 99.0  # a channel's white level; the maximum would follow hot pixels
 GAMMA = 2.2  # measured on the simulated board: corners 10 % closer to the truth than linear
 SIMILAR_PX = 1.0  # RMS motion of the board's outline below which a view adds nothing new
@@ -115,7 +118,7 @@ def calibrate_intrinsics(
     board: Board,
     *,
     distortion_model: str = "radtan",
-    max_views: int = 40,
+    max_views: int = MAX_VIEWS,
     progress: Callable[[int, int], None] | None = None,
 ) -> IntrinsicsResult:
     """Calibrate from raw APS frames [N, H, W] (10-bit) taken at ``times`` [N] (us) of

@@ -166,13 +166,15 @@ def test_no_frames_and_few_events_is_a_clear_error(board_session, tmp_path):
         calibrate(few)
 
 
-def test_without_frames_thresholds_are_the_datasheets_and_noise_is_measured(
+def test_without_frames_thresholds_balance_the_counts_and_noise_is_measured(
     board_session, tmp_path
 ):
     """(Finding the board in event frames needs the full sensor: bench/calibration.py.)"""
     blind = copy_session(board_session, tmp_path / "blind.h5", frames=False)
     cal = calibrate(blind, skip=frozenset({"intrinsics"}))
-    assert "datasheet" in cal.threshold_source and cal.thresholds is None
+    assert "event counts" in cal.threshold_source and cal.thresholds is None
+    # the simulated thresholds are the same for ON and OFF: so is their ratio
+    assert cal.threshold_on.mean() / cal.threshold_off.mean() == pytest.approx(1.0, abs=0.05)
     assert any("no APS frames" in w for w in cal.warnings)
     hot_true = truth(board_session)[3]
     assert (cal.noise.hot_pixels == hot_true).all()

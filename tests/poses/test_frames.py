@@ -15,7 +15,9 @@ def moving_edge(width=40, height=30, n=4000, seed=0) -> Events:
     t = np.sort(rng.integers(0, 100_000, n))
     x = np.clip((t / 100_000 * width + rng.normal(0, 0.5, n)).astype(int), 0, width - 1)
     y = rng.integers(0, height, n)
-    return Events(x=x, y=y, t=t, p=np.ones(n, np.uint8), width=width, height=height, color_filter="RGBG")
+    return Events(
+        x=x, y=y, t=t, p=np.ones(n, np.uint8), width=width, height=height, color_filter="RGBG"
+    )
 
 
 def test_demosaic_restores_a_flat_color():
