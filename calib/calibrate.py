@@ -35,7 +35,7 @@ class Calibration:
 
     width: int
     height: int
-    K: np.ndarray  # 3 x 3, pixels
+    K: np.ndarray | None  # 3 x 3, pixels; None: not known (not measured, none kept)
     dist: np.ndarray  # coefficients of distortion_model (OpenCV order)
     distortion_model: str  # "none", "radtan"
     intrinsics_source: str  # "APS frames", "event frames", or what was kept
@@ -57,13 +57,14 @@ class Calibration:
     def datasets(self) -> dict[str, np.ndarray]:
         h, w = self.height, self.width
         out = {
-            "K": np.asarray(self.K, np.float64),
-            "dist": np.asarray(self.dist, np.float64),
             "threshold_on": self.threshold_on.astype(np.float32),
             "threshold_off": self.threshold_off.astype(np.float32),
             "hot_pixels": self.noise.hot_pixels.astype(np.uint8),
             "event_rate_hz": self.noise.rate_hz.astype(np.float32),
         }
+        if self.K is not None:
+            out["K"] = np.asarray(self.K, np.float64)
+            out["dist"] = np.asarray(self.dist, np.float64)
         if self.threshold_confidence is not None:
             out["threshold_confidence"] = self.threshold_confidence.astype(np.float32)
         else:
@@ -211,7 +212,10 @@ def calibrate(
     intrinsics = None
     if "intrinsics" in skip:
         if old.get("K") is None:
-            warnings.append("no intrinsics: --skip intrinsics and none stored before")
+            warnings.append(
+                "no intrinsics (none measured, none stored before): calibrate a recording of "
+                "the board and pass this session to its --apply-to"
+            )
         K, dist, model = old.get("K"), old.get("dist", np.zeros(0)), old.get("model", "none")
         i_source = old.get("intrinsics_source", "not measured")
     else:
@@ -222,7 +226,12 @@ def calibrate(
             say(f"intrinsics: the board in event frames at {EVENT_FRAME_HZ:g} Hz")
             images, times = _event_images(events, on, off, noise.hot_pixels, board)
             i_source = "event frames"
-        intrinsics = calibrate_intrinsics(images, times, sensor.color_filter, board)
+        try:
+            intrinsics = calibrate_intrinsics(images, times, sensor.color_filter, board)
+        except CalibrationError as e:
+            raise CalibrationError(
+                f"{e} (to measure only the thresholds, hot pixels and noise: --skip intrinsics)"
+            ) from None
         K, dist, model = intrinsics.K, intrinsics.dist, intrinsics.distortion_model
         spread = float(np.max(intrinsics.std[:2] / np.diag(K)[:2]))
         if spread > UNCERTAIN_F:
@@ -230,8 +239,6 @@ def calibrate(
                 f"the views leave the focal length uncertain by {spread:.1%}: move the board "
                 "over the whole image, nearer and farther, tilted up to 45 degrees"
             )
-    if K is None:
-        K = np.zeros((3, 3))
     return Calibration(
         width=w,
         height=h,
