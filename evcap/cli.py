@@ -330,6 +330,23 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_poses(args: argparse.Namespace) -> int:
+    from evcap.poses.estimate import estimate_poses, write_poses
+
+    result = estimate_poses(
+        args.session,
+        kind=args.frames,
+        weights=args.weights,
+        rate_hz=args.rate,
+        export_frames=args.export_frames,
+        say=print,
+    )
+    write_poses(args.session, result)
+    print(result.summary())
+    print(f"written to /poses of {args.session} ({result.seconds:.0f} s of structure from motion)")
+    return 0
+
+
 # --without: the switches of the method's ablations
 ABLATION_FLAGS = {"anchor": "anchor", "edge-tv": "tv", "distillation": "distill"}
 
@@ -493,6 +510,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--print-board", metavar="OUT.png", help="write the board as an image to print")
     p.add_argument("--dpi", type=int, default=300, help="--print-board's resolution")
     p.set_defaults(run=_cmd_calibrate)
+
+    p = sub.add_parser(
+        "poses",
+        help="estimate the camera's path from the events",
+        description="Make intensity frames from the session's events, register them by "
+        "structure from motion (pycolmap) with the calibrated intrinsics fixed, and write "
+        "the camera-to-world transforms to /poses (replacing what was there; scale arbitrary).",
+    )
+    p.add_argument("session", help="the session file (.h5), with /calibration")
+    p.add_argument(
+        "--frames",
+        default="filter",
+        choices=["filter", "e2vid", "firenet"],
+        help="filter: a per-pixel high-pass filter, no weights (default); e2vid, firenet: the "
+        "recurrent networks, from --weights",
+    )
+    p.add_argument(
+        "--weights",
+        metavar="FILE",
+        help="the network's checkpoint (e.g. E2VID_lightweight.pth.tar); read as weights only",
+    )
+    p.add_argument(
+        "--rate", type=float, metavar="HZ", help="frames per second (default: from the event rate)"
+    )
+    p.add_argument("--export-frames", metavar="DIR", help="also write the frames as PNG files")
+    p.set_defaults(run=_cmd_poses)
 
     p = sub.add_parser(
         "reconstruct",

@@ -32,6 +32,10 @@ class CalibrationError(InputError):
     """A calibration the recording cannot give (no board seen, too little data)."""
 
 
+class PosesError(InputError):
+    """Poses the recording cannot give (structure from motion failed)."""
+
+
 class ForeignFormatError(InputError):
     """A file to import is not in the expected format, or is corrupt or truncated."""
 

@@ -17,15 +17,16 @@ from evcap.events import Events, pixel_channels
 KINDS = ("filter", "e2vid", "firenet")
 EVENTS_PER_PIXEL = 0.35  # events per frame per pixel that set the rate (E2VID's window)
 MIN_RATE_HZ, MAX_RATE_HZ = 5.0, 60.0
+MIN_FRAMES = 60  # structure from motion wants views a few pixels of motion apart
 FILTER_CUTOFF_HZ = 3.0  # the high-pass corner: about 50 ms of memory
 
 
 def frame_rate(events: Events) -> float:
     """Frames per second such that each frame spans about EVENTS_PER_PIXEL events per pixel,
-    within MIN_RATE_HZ..MAX_RATE_HZ."""
+    and a recording gives at least MIN_FRAMES frames, within MIN_RATE_HZ..MAX_RATE_HZ."""
     span_s = max((int(events.t[-1]) - int(events.t[0])) * 1e-6, 1e-6) if len(events) else 1.0
     rate = len(events) / span_s / (EVENTS_PER_PIXEL * events.width * events.height)
-    return float(np.clip(rate, MIN_RATE_HZ, MAX_RATE_HZ))
+    return float(np.clip(max(rate, MIN_FRAMES / span_s), MIN_RATE_HZ, MAX_RATE_HZ))
 
 
 def demosaic(mosaic: np.ndarray, color_filter: str) -> np.ndarray:

@@ -17,6 +17,7 @@ def test_help_lists_every_command_with_one_line():
         "monitor",
         "simulate",
         "calibrate",
+        "poses",
         "reconstruct",
     ]
     assert all(len(line.split()) > 2 for line in lines)

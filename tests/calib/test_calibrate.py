@@ -15,52 +15,7 @@ from evcap.session import Session, SessionWriter
 from evcap.sim.scene import load_scene
 from evcap.sim.simulate import simulate
 
-BOARD = "charuco:5x4:0.04:0.03:DICT_4X4_50"
-OBJECTS = """[[objects]]
-type = "charuco"
-center = [0.0, 0.0, 0.0]
-rotation_deg = [90.0, 0.0, 0.0]
-squares_x = 5
-squares_y = 4
-square_length = 0.04
-marker_length = 0.03
-dictionary = "DICT_4X4_50"
-"""
-HANDHELD = """kind = "handheld"
-start = [-0.12, -0.24, 0.08]
-end = [0.12, -0.22, -0.06]
-look_at = [0.0, 0.0, 0.0]
-shake_units = 0.005
-shake_deg = 3.0
-shake_hz = 1.0
-duration_s = 1.2"""
-EFFECTS = """[sensor.effects]
-threshold_spread = { sigma = 0.03 }
-background_activity = { rate_hz = 0.2 }
-hot_pixels = { count = 8, rate_hz = 300.0 }
-refractory = { period_us = 100 }"""
-LIGHT = (
-    'environment = "sky"\nsky = { zenith = [0.8, 0.8, 0.8], horizon = [0.8, 0.8, 0.8], '
-    "ground = [0.6, 0.6, 0.6] }"
-)
-
-
-@pytest.fixture(scope="module")
-def board_session(tiny_scene, tmp_path_factory):
-    """A 1.2 s hand-held pass over a 5 x 4 board, 200 x 150 pixels, with frames and noise."""
-    scene = tiny_scene(
-        objects=OBJECTS,
-        width=200,
-        height=150,
-        fx=160.0,
-        trajectory=HANDHELD,
-        lighting=LIGHT,
-        effects=EFFECTS,
-        extra="[aps]\nfps = 25\nexposure_us = 3000\n[gt]\nfps = 5\ntest_views = 0",
-    )
-    path = tmp_path_factory.mktemp("calib") / "board.h5"
-    simulate(load_scene(scene), path)
-    return path
+BOARD = "charuco:5x4:0.04:0.03:DICT_4X4_50"  # the board of the board_session fixture
 
 
 def truth(path):

@@ -9,11 +9,11 @@ from evcap.poses.e2vid import random_network, save_checkpoint
 from evcap.poses.frames import demosaic, event_frames, frame_rate
 
 
-def moving_edge(width=40, height=30, n=4000, seed=0) -> Events:
-    """ON events of a vertical edge sweeping right over 0.1 s."""
+def moving_edge(width=40, height=30, n=4000, span_us=100_000, seed=0) -> Events:
+    """ON events of a vertical edge sweeping right over ``span_us``."""
     rng = np.random.default_rng(seed)
-    t = np.sort(rng.integers(0, 100_000, n))
-    x = np.clip((t / 100_000 * width + rng.normal(0, 0.5, n)).astype(int), 0, width - 1)
+    t = np.sort(rng.integers(0, span_us, n))
+    x = np.clip((t / span_us * width + rng.normal(0, 0.5, n)).astype(int), 0, width - 1)
     y = rng.integers(0, height, n)
     return Events(
         x=x, y=y, t=t, p=np.ones(n, np.uint8), width=width, height=height, color_filter="RGBG"
@@ -32,8 +32,9 @@ def test_demosaic_restores_a_flat_color():
 
 
 def test_frame_rate_follows_the_event_rate():
-    ev = moving_edge(n=1000)
-    assert frame_rate(ev) == pytest.approx(1000 / 0.1 / (0.35 * 40 * 30), rel=0.01)
+    ev = moving_edge(n=100_000, span_us=10_000_000)
+    assert frame_rate(ev) == pytest.approx(100_000 / 10 / (0.35 * 40 * 30), rel=0.01)
+    assert frame_rate(moving_edge(n=9000, span_us=10_000_000)) == pytest.approx(6.0, rel=1e-3)
     assert frame_rate(moving_edge(n=9000)) == 60.0  # at most
 
 

@@ -1,0 +1,99 @@
+"""Poses from the events against the truth: `evcap poses` on simulated sessions with a known
+trajectory (an orbit, and a hand-held path), the estimate aligned to the truth by a similarity;
+then the reconstruction (`tiny`, stage I) of the single-object scene on the estimated poses
+against on the true ones. Prints the figures and writes results/poses.json.
+
+    python bench/poses.py [--scenes single_object charuco_board] [--frames filter]
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import RESULTS, report, session_of  # noqa: E402
+
+
+def poses_against_truth(path: Path, work: Path, kind: str) -> tuple[dict, Path]:
+    """Estimate the poses of a copy of the session; errors after a similarity alignment.
+    Returns the figures and the copy, whose /poses then holds the aligned estimate."""
+    from evcap.poses.align import align_similarity, apply_similarity, pose_errors
+    from evcap.poses.estimate import estimate_poses, write_poses
+    from evcap.poses.track import PoseTrack
+    from evcap.session import Session
+
+    copy = work / f"{path.stem}_{kind}.h5"
+    shutil.copy(path, copy)
+    with Session.open(path) as s:
+        truth = PoseTrack.from_session(s)
+    t0 = time.perf_counter()
+    result = estimate_poses(copy, kind=kind)
+    seconds = time.perf_counter() - t0
+    inside = (result.t_us >= truth.start) & (result.t_us <= truth.end)
+    T_true = truth.at(result.t_us[inside])
+    T_est = result.T_world_cam[inside]
+    errors = pose_errors(T_est, T_true)
+    by_poses = pose_errors(T_est, T_true, by="poses")
+    np.savez(
+        RESULTS / f"poses_{path.stem}_{kind}.npz",
+        t_us=result.t_us[inside],
+        T_est=T_est,
+        T_true=T_true,
+    )
+    s_, R, t = align_similarity(T_est[:, :3, 3], T_true[:, :3, 3])
+    result.T_world_cam = apply_similarity(result.T_world_cam, s_, R, t)
+    write_poses(copy, result)
+    name = f"{path.stem}_{kind}"
+    figures = {
+        f"{name}_frames": result.frames,
+        f"{name}_registered": result.registered,
+        f"{name}_rate_hz": result.rate_hz,
+        f"{name}_mean_reprojection_px": result.mean_reprojection_px,
+        f"{name}_seconds": seconds,
+    }
+    figures.update({f"{name}_{k}": v for k, v in errors.items() if np.isscalar(v)})
+    for k in ("rotation_median_deg", "rotation_rms_deg", "translation_median_pct"):
+        figures[f"{name}_{k}_aligned_by_poses"] = by_poses[k]
+    return figures, copy
+
+
+def reconstruction_difference(true_session: Path, estimated: Path, work: Path) -> dict:
+    """Stage I (tiny) on the true poses and on the aligned estimated ones: held-out PSNR."""
+    from evcap.recon.reconstruct import reconstruct
+
+    out = {}
+    for name, session in (("true", true_session), ("estimated", estimated)):
+        m = reconstruct(session, work / f"recon_{name}", preset="tiny", stage="radiance")
+        out[f"recon_{name}_poses_render_psnr_cc"] = m["render_psnr_cc"]
+    out["recon_psnr_cc_loss_db"] = (
+        out["recon_true_poses_render_psnr_cc"] - out["recon_estimated_poses_render_psnr_cc"]
+    )
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenes", nargs="+", default=["single_object", "charuco_board"])
+    ap.add_argument("--frames", default="filter", choices=["filter", "e2vid", "firenet"])
+    args = ap.parse_args()
+    figures: dict = {"frames": args.frames}
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        for scene in args.scenes:
+            path = session_of(scene)
+            part, copy = poses_against_truth(path, work, args.frames)
+            figures.update(part)
+            if scene == "single_object":
+                figures.update(reconstruction_difference(path, copy, work))
+    report("poses", figures)
+
+
+if __name__ == "__main__":
+    main()

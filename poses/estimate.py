@@ -1,0 +1,144 @@
+"""`evcap poses`: the camera's path from the events alone. Frames are made from the events
+(poses/frames.py), structure from motion runs on them with the calibrated intrinsics fixed
+(poses/sfm.py), and the registered frames' camera-to-world transforms are written to /poses,
+where the reconstruction interpolates them at any time (poses/track.py)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from evcap.errors import InputError
+from evcap.poses.frames import event_frames, frame_rate
+from evcap.session import Session, write_group
+
+MIN_EVENTS = 10_000
+
+
+@dataclass
+class PosesResult:
+    """What `evcap poses` found."""
+
+    t_us: np.ndarray  # [M] int64, times of the registered frames
+    T_world_cam: np.ndarray  # [M, 4, 4] camera-to-world, OpenCV axes, arbitrary scale
+    frames: int  # frames made from the events
+    rate_hz: float
+    kind: str  # how the frames were made
+    mean_reprojection_px: float
+    points: int  # 3D points of the model
+    seconds: float  # structure from motion's time
+
+    @property
+    def registered(self) -> int:
+        return len(self.t_us)
+
+    def summary(self) -> str:
+        return (
+            f"{self.registered} of {self.frames} frames registered ({self.kind} frames at "
+            f"{self.rate_hz:.1f} Hz), {self.points:,} points, mean reprojection error "
+            f"{self.mean_reprojection_px:.3f} px; scale arbitrary"
+        )
+
+
+def estimate_poses(
+    path: str | Path,
+    *,
+    kind: str = "filter",
+    weights: str | Path | None = None,
+    rate_hz: float | None = None,
+    export_frames: str | Path | None = None,
+    say: Callable[[str], None] = lambda line: None,
+) -> PosesResult:
+    """Make frames from the session's events and register them by structure from motion."""
+    from evcap.poses.sfm import run_sfm
+
+    with Session.open(path) as s:
+        if "calibration" not in s.groups or "K" not in s.group("calibration"):
+            raise InputError(
+                f"{path} has no intrinsics (/calibration/K): run `evcap calibrate` on it, or "
+                "`evcap calibrate --apply-to` from a calibration recording of the same camera"
+            )
+        g = s.group("calibration")
+        K = g["K"][()]
+        dist_name = "dist" if "dist" in g else "distortion"
+        dist = g[dist_name][()] if dist_name in g else np.zeros(0)
+        if str(g.attrs.get("distortion_model", "none")) not in ("none", "radtan"):
+            raise InputError(f"{path}: structure from motion takes radtan distortion only")
+        on = g["threshold_on"][()] if "threshold_on" in g else 0.2
+        off = g["threshold_off"][()] if "threshold_off" in g else 0.2
+        hot = g["hot_pixels"][()].astype(bool) if "hot_pixels" in g else None
+        events = s.events()
+    if len(events) < MIN_EVENTS:
+        raise InputError(
+            f"{path}: {len(events):,} events; poses from events need at least {MIN_EVENTS:,} "
+            "(a longer recording, with the camera moving)"
+        )
+    rate = frame_rate(events) if rate_hz is None else float(rate_hz)
+    if not 0 < rate <= 1000:
+        raise InputError(f"--rate must be in (0, 1000] Hz, got {rate_hz}")
+    step = int(round(1e6 / rate))
+    times = np.arange(int(events.t[0]) + step, int(events.t[-1]) + 1, step, dtype=np.int64)
+    if len(times) < 3:
+        raise InputError(f"{path}: the events span too short a time for {rate:g} Hz frames")
+    say(f"frames: {len(times)} {kind} frames at {rate:.1f} Hz from {len(events):,} events")
+    images = event_frames(
+        events,
+        times,
+        kind=kind,
+        weights=weights,
+        threshold_on=on,
+        threshold_off=off,
+        hot_pixels=hot,
+    )
+    if export_frames is not None:
+        write_frames(images, times, export_frames)
+        say(f"frames written to {export_frames}")
+    say("structure from motion (pycolmap), intrinsics fixed to the calibration")
+    sfm = run_sfm(list(images), times, K, dist)
+    return PosesResult(
+        t_us=sfm.t_us,
+        T_world_cam=sfm.T_world_cam,
+        frames=len(times),
+        rate_hz=rate,
+        kind=kind,
+        mean_reprojection_px=float(sfm.mean_reprojection_px),
+        points=int(sfm.points),
+        seconds=float(sfm.seconds),
+    )
+
+
+def write_poses(path: str | Path, result: PosesResult) -> None:
+    """Replace the session's /poses with ``result``."""
+    write_group(
+        path,
+        "poses",
+        {"t": result.t_us, "T_world_cam": result.T_world_cam},
+        {
+            "source": f"evcap poses ({result.kind} frames, pycolmap)",
+            "frame": "camera-to-world, OpenCV camera axes",
+            "interpolation": "linear position, slerp rotation",
+            "scale": "arbitrary (structure from motion: no metric scale)",
+            "registered": result.registered,
+            "frames": result.frames,
+            "rate_hz": result.rate_hz,
+            "mean_reprojection_px": result.mean_reprojection_px,
+            "points": result.points,
+        },
+        replace=True,
+    )
+
+
+def write_frames(images: np.ndarray, times_us: np.ndarray, folder: str | Path) -> None:
+    """PNG per frame, named by its time (µs), for inspection."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(f"cannot create {folder}: {e.strerror or e}") from None
+    for image, t in zip(images, times_us, strict=True):
+        if not cv2.imwrite(str(folder / f"frame_{int(t):012d}us.png"), image):
+            raise InputError(f"cannot write frames into {folder}")
