@@ -72,6 +72,7 @@ def estimate_poses(
         off = g["threshold_off"][()] if "threshold_off" in g else 0.2
         hot = g["hot_pixels"][()].astype(bool) if "hot_pixels" in g else None
         events = s.events()
+        aps = s.frames()
     if len(events) < MIN_EVENTS:
         raise InputError(
             f"{path}: {len(events):,} events; poses from events need at least {MIN_EVENTS:,} "
@@ -84,7 +85,9 @@ def estimate_poses(
     times = np.arange(int(events.t[0]) + step, int(events.t[-1]) + 1, step, dtype=np.int64)
     if len(times) < 3:
         raise InputError(f"{path}: the events span too short a time for {rate:g} Hz frames")
-    say(f"frames: {len(times)} {kind} frames at {rate:.1f} Hz from {len(events):,} events")
+    with_aps = kind == "filter" and len(aps) > 0
+    name = "complementary filter (events and APS frames)" if with_aps else kind
+    say(f"frames: {len(times)} at {rate:.1f} Hz, {name}, from {len(events):,} events")
     images = event_frames(
         events,
         times,
@@ -93,6 +96,7 @@ def estimate_poses(
         threshold_on=on,
         threshold_off=off,
         hot_pixels=hot,
+        aps=aps if with_aps else None,
     )
     if export_frames is not None:
         write_frames(images, times, export_frames)
@@ -104,7 +108,7 @@ def estimate_poses(
         T_world_cam=sfm.T_world_cam,
         frames=len(times),
         rate_hz=rate,
-        kind=kind,
+        kind="complementary filter" if with_aps else kind,
         mean_reprojection_px=float(sfm.mean_reprojection_px),
         points=int(sfm.points),
         seconds=float(sfm.seconds),

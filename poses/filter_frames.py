@@ -1,6 +1,8 @@
-"""Intensity frames from events with no network: each pixel's log intensity integrated from its
-events (each adds its polarity's contrast threshold) through a first-order high-pass filter
-(Scheerlinck et al., ACCV 2018), so what a pixel saw long ago fades instead of drifting.
+"""Intensity frames from events with no network (Scheerlinck et al., ACCV 2018): each pixel's
+log intensity integrated from its events (each adds its polarity's contrast threshold) and
+pulled, at rate 2 pi cutoff, towards a reference: 0 (a high-pass filter: what a pixel saw long
+ago fades instead of drifting) or, with APS frames, the log of the latest frame (the
+complementary filter: the frames give the low frequencies, the events the high ones).
 Frames are made on the raw mosaic: one value per pixel, in that pixel's own color channel."""
 
 from __future__ import annotations
@@ -10,29 +12,42 @@ import numpy as np
 
 from evcap.errors import InputError
 from evcap.events import Events
+from evcap.streams import Frames
 
 
 @numba.njit(cache=True, nogil=True)
-def _high_pass(x, y, t, p, c_on, c_off, times, alpha, width, height):  # pragma: no cover - numba
+def _filter(x, y, t, p, c_on, c_off, ref_t, ref, times, alpha, width, height):  # pragma: no cover
     n_px = width * height
-    value = np.zeros(n_px)
+    value = ref[0].copy() if len(ref_t) else np.zeros(n_px)
+    target = value.copy()
     last = np.zeros(n_px)
+    if len(t):
+        last[:] = t[0]
     out = np.zeros((len(times), height, width), np.float32)
-    k = 0
-    for i in range(len(t)):
-        while k < len(times) and t[i] > times[k]:
-            for j in range(n_px):
-                out[k, j // width, j % width] = value[j] * np.exp(-alpha * (times[k] - last[j]))
-            k += 1
-        if k == len(times):
-            break
-        j = int(y[i]) * width + int(x[i])
-        value[j] = value[j] * np.exp(-alpha * (t[i] - last[j])) + (c_on[j] if p[i] else -c_off[j])
-        last[j] = t[i]
+    i = k = 0
+    r = 1  # the next reference frame (the first is in force from the start)
     while k < len(times):
-        for j in range(n_px):
-            out[k, j // width, j % width] = value[j] * np.exp(-alpha * (times[k] - last[j]))
-        k += 1
+        # the next thing to happen: an event, a new reference frame, or an output frame
+        t_event = t[i] if i < len(t) else np.iinfo(np.int64).max
+        t_ref = ref_t[r] if r < len(ref_t) else np.iinfo(np.int64).max
+        if times[k] < t_event and times[k] < t_ref:
+            for j in range(n_px):
+                decay = np.exp(-alpha * (times[k] - last[j]))
+                out[k, j // width, j % width] = target[j] + (value[j] - target[j]) * decay
+            k += 1
+        elif t_ref <= t_event:
+            for j in range(n_px):
+                value[j] = target[j] + (value[j] - target[j]) * np.exp(-alpha * (t_ref - last[j]))
+                last[j] = t_ref
+                target[j] = ref[r, j]
+            r += 1
+        else:
+            j = int(y[i]) * width + int(x[i])
+            decay = np.exp(-alpha * (t[i] - last[j]))
+            value[j] = target[j] + (value[j] - target[j]) * decay
+            value[j] += c_on[j] if p[i] else -c_off[j]
+            last[j] = t[i]
+            i += 1
     return out
 
 
@@ -44,11 +59,14 @@ def high_pass_frames(
     threshold_on: np.ndarray | float = 0.2,
     threshold_off: np.ndarray | float = 0.2,
     exclude: np.ndarray | None = None,
+    aps: Frames | None = None,
 ) -> np.ndarray:
-    """[K, H, W] float32 log-intensity change (log units) of each pixel at ``times_us``, from
-    ``events`` through a high-pass filter with corner ``cutoff_hz``: a still scene fades to 0
-    in about 1 / (2 pi cutoff) seconds. ``exclude`` ([H, W] bool) marks pixels to leave at 0
-    (hot pixels)."""
+    """[K, H, W] float32 log intensity (log units) of each pixel at ``times_us``, from
+    ``events`` through the filter with corner ``cutoff_hz``. Without ``aps`` frames it is the
+    change from what the pixel saw lately (a still scene fades to 0 in about
+    1 / (2 pi cutoff) seconds); with them, the log of each frame (per millisecond of
+    exposure) corrected by the events since. ``exclude`` ([H, W] bool): pixels whose events
+    are left out (hot pixels)."""
     times = np.asarray(times_us, np.int64)
     if times.ndim != 1 or (np.diff(times) < 0).any():
         raise InputError("frame times must be a 1-D increasing sequence of microseconds")
@@ -58,5 +76,13 @@ def high_pass_frames(
     c_on = np.broadcast_to(np.asarray(threshold_on, np.float64), (h, w)).ravel().copy()
     c_off = np.broadcast_to(np.asarray(threshold_off, np.float64), (h, w)).ravel().copy()
     ev = events if exclude is None else events.select(~exclude[events.y, events.x])
+    if aps is not None and len(aps):
+        if aps.data.shape[1:] != (h, w):
+            raise InputError(f"APS frames are {aps.data.shape[1:]}, the events {h} x {w}")
+        per_ms = aps.data.reshape(len(aps), -1) / np.maximum(aps.exposure_us, 1)[:, None] * 1e3
+        ref = np.log(per_ms + 1.0)  # + 1 count per ms keeps black pixels finite
+        ref_t = aps.t + aps.exposure_us // 2
+    else:
+        ref, ref_t = np.zeros((0, w * h)), np.zeros(0, np.int64)
     alpha = 2 * np.pi * cutoff_hz * 1e-6  # per microsecond
-    return _high_pass(ev.x, ev.y, ev.t, ev.p, c_on, c_off, times, alpha, w, h)
+    return _filter(ev.x, ev.y, ev.t, ev.p, c_on, c_off, ref_t, ref, times, alpha, w, h)

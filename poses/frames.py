@@ -13,12 +13,13 @@ import numpy as np
 
 from evcap.errors import InputError
 from evcap.events import Events, pixel_channels
+from evcap.streams import Frames
 
 KINDS = ("filter", "e2vid", "firenet")
 EVENTS_PER_PIXEL = 0.35  # events per frame per pixel that set the rate (E2VID's window)
 MIN_RATE_HZ, MAX_RATE_HZ = 5.0, 60.0
 MIN_FRAMES = 60  # structure from motion wants views a few pixels of motion apart
-FILTER_CUTOFF_HZ = 3.0  # the high-pass corner: about 50 ms of memory
+FILTER_CUTOFF_HZ = 3.0  # the filter's corner: about 50 ms of memory
 
 
 def frame_rate(events: Events) -> float:
@@ -64,9 +65,11 @@ def event_frames(
     threshold_on: np.ndarray | float = 0.2,
     threshold_off: np.ndarray | float = 0.2,
     hot_pixels: np.ndarray | None = None,
+    aps: Frames | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> np.ndarray:
-    """[K, H, W] uint8 gray frames at ``times_us`` from ``events``."""
+    """[K, H, W] uint8 gray frames at ``times_us`` from ``events`` (and for the filter, the
+    recording's ``aps`` frames when it has them: the complementary filter)."""
     if kind not in KINDS:
         raise InputError(f"unknown frame kind {kind!r}; known: {', '.join(KINDS)}")
     if kind == "filter":
@@ -81,6 +84,7 @@ def event_frames(
             threshold_on=threshold_on,
             threshold_off=threshold_off,
             exclude=hot_pixels,
+            aps=aps,
         )
     else:
         mosaics = _network_frames(events, times_us, kind, weights, hot_pixels, progress)

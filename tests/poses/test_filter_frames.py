@@ -33,3 +33,19 @@ def test_excluded_pixels_stay_at_zero_and_bad_times_are_refused():
     assert frames[0, 0, 0] == 0 and frames[0, 0, 1] > 0
     with pytest.raises(InputError, match="increasing"):
         high_pass_frames(ev, [10, 5])
+
+
+def test_with_aps_frames_the_events_correct_the_latest_frame():
+    from evcap.streams import Frames
+
+    data = np.full((2, 1, 2), 99, np.uint16)
+    data[1, 0, 1] = 399  # the second frame: pixel 1 four times brighter
+    aps = Frames(data, t=[0, 100_000], exposure_us=[1000, 1000])  # mid-exposure 500, 100500
+    ev = Events(x=[0], y=[0], t=[1000], p=[1], width=2, height=1)
+    frames = high_pass_frames(ev, [1000, 50_000, 200_000], cutoff_hz=5.0, aps=aps)
+    level = np.log(100.0)  # 99 counts per ms, + 1
+    assert frames[0, 0, 0] == pytest.approx(level + 0.2, rel=1e-5)  # the frame + one ON event
+    assert frames[0, 0, 1] == pytest.approx(level, rel=1e-5)
+    decayed = 0.2 * np.exp(-2 * np.pi * 5.0 * 0.049)
+    assert frames[1, 0, 0] == pytest.approx(level + decayed, rel=1e-4)  # back towards the frame
+    assert frames[2, 0, 1] == pytest.approx(np.log(400.0), abs=0.1 * np.log(4))
