@@ -18,7 +18,7 @@ from evcap.calib.thresholds import DATASHEET_THRESHOLDS, ThresholdFit, fit_thres
 from evcap.errors import CalibrationError, InputError
 from evcap.session import Session, write_group
 
-PARTS = ("intrinsics", "thresholds", "noise")
+SKIPPABLE = ("intrinsics", "thresholds")  # the noise is always measured: it finds the hot pixels
 # Frames of the board made from the events when the recording has no APS frames: rate and
 # high-pass corner measured on the simulated hand-held sweep (50 Hz, 3 Hz: 40 views, focal length
 # within 0.5 %; 20 Hz: the board smeared, found in a third as many frames); slower motion wants
@@ -160,11 +160,13 @@ def calibrate(
     skip: frozenset[str] = frozenset(),
     say: Callable[[str], None] = lambda line: None,
 ) -> Calibration:
-    """Measure what the session at ``path`` allows. ``skip``: parts of PARTS not to measure
+    """Measure what the session at ``path`` allows. ``skip``: parts of SKIPPABLE not to measure
     (what the session's /calibration already holds is kept for them)."""
-    unknown = set(skip) - set(PARTS)
+    unknown = set(skip) - set(SKIPPABLE)
     if unknown:
-        raise InputError(f"unknown calibration parts {sorted(unknown)}; known: {', '.join(PARTS)}")
+        raise InputError(
+            f"cannot skip {sorted(unknown)}; what can be skipped: {', '.join(SKIPPABLE)}"
+        )
     with Session.open(path) as s:
         sensor = s.sensor
         events = s.events()
