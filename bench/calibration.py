@@ -9,6 +9,7 @@ no board). Prints the figures and writes results/calibration.json.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import tempfile
 import time
@@ -49,7 +50,7 @@ def against_truth(path: Path, frames: bool) -> dict:
         on_t, off_t = g["threshold_on"][()], g["threshold_off"][()]
         hot_t = np.zeros(on_t.size, bool)
         hot_t[g.attrs["hot_pixels"]] = True
-        effects = __import__("json").loads(f.attrs["effects"])
+        effects = json.loads(f.attrs["effects"])
     hot = cal.noise.hot_pixels.ravel()
     tp = int((hot & hot_t).sum())
     ba = effects.get("background_activity", {}).get("rate_hz", 0.0)

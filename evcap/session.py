@@ -467,6 +467,15 @@ class SessionWriter:
             self.abort()
 
 
+def stored_distortion(calibration: h5py.Group) -> np.ndarray:
+    """The distortion coefficients of a /calibration group (`dist`; sessions written before the
+    name changed hold `distortion`); empty when it has none."""
+    for name in ("dist", "distortion"):
+        if name in calibration:
+            return np.asarray(calibration[name][()], np.float64)
+    return np.zeros(0)
+
+
 def write_group(
     path: str | os.PathLike,
     name: str,

@@ -14,7 +14,7 @@ import numpy as np
 
 from evcap.errors import InputError
 from evcap.poses.frames import event_frames, frame_rate
-from evcap.session import Session, write_group
+from evcap.session import Session, stored_distortion, write_group
 
 MIN_EVENTS = 10_000
 
@@ -64,8 +64,7 @@ def estimate_poses(
             )
         g = s.group("calibration")
         K = g["K"][()]
-        dist_name = "dist" if "dist" in g else "distortion"
-        dist = g[dist_name][()] if dist_name in g else np.zeros(0)
+        dist = stored_distortion(g)
         if str(g.attrs.get("distortion_model", "none")) not in ("none", "radtan"):
             raise InputError(f"{path}: structure from motion takes radtan distortion only")
         on = g["threshold_on"][()] if "threshold_on" in g else 0.2

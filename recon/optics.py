@@ -17,7 +17,7 @@ import torch.nn.functional as F
 
 from evcap.errors import InputError
 from evcap.events import Channel, pixel_channels
-from evcap.session import Session
+from evcap.session import Session, stored_distortion
 
 # what each channel sees of the rendered (R, G, B): a Bayer pixel one of them, MONO luminance
 CHANNEL_WEIGHTS = torch.tensor(
@@ -61,8 +61,7 @@ class SensorOptics:
         model = str(g.attrs.get("distortion_model", "none"))
         if model not in ("none", "radtan", "equidistant"):
             raise InputError(f"{session.path}: unknown distortion model {model!r}")
-        name = "dist" if "dist" in g else "distortion"  # "distortion": the name before `dist`
-        dist = np.asarray(g[name][:], np.float64) if name in g else np.zeros(0)
+        dist = stored_distortion(g)
         return cls(w, h, K, model, dist, s.color_filter, on, off, hot)
 
     def undistorted(self) -> np.ndarray:

@@ -74,15 +74,14 @@ def load_calibration(path: str | Path) -> CameraSpec:
 
 def _session_calibration(path: Path) -> CameraSpec:
     """The intrinsics of an evcap session's /calibration (measured by `evcap calibrate`)."""
-    from evcap.session import Session
+    from evcap.session import Session, stored_distortion
 
     with Session.open(path, validate=False) as s:
         if "calibration" not in s.groups or "K" not in s.group("calibration"):
             raise InputError(f"{path} has no intrinsics (/calibration/K): run evcap calibrate")
         g = s.group("calibration")
         K = g["K"][()]
-        name = "dist" if "dist" in g else "distortion"
-        dist = tuple(float(v) for v in g[name][()]) if name in g else ()
+        dist = tuple(float(v) for v in stored_distortion(g))
         model = str(g.attrs.get("distortion_model", "none"))
         w, h = s.sensor.width, s.sensor.height
     if not (np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0):
