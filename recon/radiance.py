@@ -7,6 +7,7 @@ channel with its events: L = L_event + 0.1 L_GW + 0.05 L_normal.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -123,6 +124,7 @@ class Fit:
     field: RadianceField
     log: list[StepLog]  # every 10 steps
     interrupted: bool
+    history: list[dict] = dataclasses.field(default_factory=list)  # the evaluations along the way
 
 
 def new_field(
@@ -152,8 +154,13 @@ def train_radiance(
     backend: str = "torch",
     progress: Callable[[int, int, str], None] | None = None,
     clock: Callable[[], float] = time.perf_counter,
+    evaluate: Callable[[RadianceField], dict] | None = None,
+    evaluations: int = 6,
 ) -> Fit:
-    """Fit stage I; Ctrl-C ends it early with what was learnt so far."""
+    """Fit stage I; Ctrl-C ends it early with what was learnt so far. ``evaluate``, when
+    given, is called at ``evaluations`` evenly spaced steps (its time not counted in the
+    training's seconds) and what it returns goes into the fit's history with step and
+    seconds: the accuracy-versus-time curve."""
     torch.manual_seed(seed)
     field = new_field(data, config, seed, device, backend)
     extent = data.volume.radius
@@ -164,6 +171,9 @@ def train_radiance(
     started = clock()
     degree_every = max(config.iterations // 30, 1)
     interrupted = False
+    history: list[dict] = []
+    evaluate_at = set(np.linspace(0, config.iterations, evaluations + 1)[1:].round().astype(int))
+    paused = 0.0
     try:
         for step in range(1, config.iterations + 1):
             sh_degree = min(config.sh_degree, (step - 1) // degree_every)
@@ -190,12 +200,17 @@ def train_radiance(
                 densifier.reset_opacities(field.gaussians, optimizer)
             n = len(field.gaussians)
             if step % 10 == 0 or step == config.iterations:
-                log.append(StepLog(step, loss, **terms, gaussians=n, seconds=clock() - started))
+                seconds = clock() - started - paused
+                log.append(StepLog(step, loss, **terms, gaussians=n, seconds=seconds))
+            if evaluate is not None and step in evaluate_at:
+                seconds, before = clock() - started - paused, clock()
+                history.append({"step": step, "seconds": seconds, **evaluate(field)})
+                paused += clock() - before
             if progress:
                 progress(step, config.iterations, f"loss {loss:.4f}  {n:,} Gaussians")
     except KeyboardInterrupt:
         interrupted = True  # Ctrl-C: keep what was learnt so far
-    return Fit(field, log, interrupted)
+    return Fit(field, log, interrupted, history)
 
 
 def draw_frames(rng: np.random.Generator, frames: int, config: RadianceConfig) -> np.ndarray:

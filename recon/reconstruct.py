@@ -30,7 +30,7 @@ from evcap.recon.export import (
     write_views,
 )
 from evcap.recon.material import environment_image, light_from_image, train_material
-from evcap.recon.metrics import fit_color_correction
+from evcap.recon.metrics import fit_color_correction, image_metrics
 from evcap.recon.radiance import load_training_data, train_radiance
 from evcap.recon.rasterize import default_backend
 from evcap.recon.shading import mip_chain
@@ -39,6 +39,7 @@ from evcap.session import Session
 STAGES = ("radiance", "material", "all")
 ABLATIONS = ("anchor", "tv", "distill")
 TRACK_VIEWS = 8  # views rendered along the path when the session has no held-out views
+HISTORY_VIEWS = 2  # held-out views rendered for the accuracy-versus-time curve
 
 
 def pick_device(name: str) -> str:
@@ -172,7 +173,20 @@ def reconstruct(
 
 def _stage_radiance(data, config, poses, truth, out: Path, seed, device, backend, progress):
     """Stage I and its outputs; (the field, its figures)."""
-    fit = train_radiance(data, config, seed=seed, device=device, backend=backend, progress=progress)
+
+    def evaluate(field) -> dict:
+        views = render_views(field, poses[:HISTORY_VIEWS], data.optics, device)
+        return image_metrics(views["radiance"], truth["radiance"][:HISTORY_VIEWS], "render")
+
+    fit = train_radiance(
+        data,
+        config,
+        seed=seed,
+        device=device,
+        backend=backend,
+        progress=progress,
+        evaluate=evaluate if "radiance" in truth else None,
+    )
     field, log = fit.field, fit.log
     views = render_views(field, poses, data.optics, device)
     result: dict = metrics(views, truth) if truth else {}
@@ -184,6 +198,7 @@ def _stage_radiance(data, config, poses, truth, out: Path, seed, device, backend
             "device": device,
             "backend": backend,
             "interrupted": fit.interrupted,
+            "history": fit.history,
         }
     )
     write_ply(field, out / "gaussians.ply")

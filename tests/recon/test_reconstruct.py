@@ -107,6 +107,11 @@ def test_writes_every_output(color_result):
         assert isinstance(metrics[key], str) or np.isfinite(metrics[key]), key
     assert metrics["iterations"] == 30 and metrics["device"] == "cpu"
     assert metrics["material_iterations"] == 8
+    # the accuracy-versus-time curve: held-out PSNR at evenly spaced steps, the last one's
+    history = metrics["history"]
+    assert [h["step"] for h in history] == [5, 10, 15, 20, 25, 30]
+    assert all(np.diff([h["seconds"] for h in history]) > 0)
+    assert all(np.isfinite(h["render_psnr_cc"]) for h in history)
     # an isolated sphere: nothing to shadow it, nothing to bleed onto it
     assert metrics["effects"] == {
         "visibility": False,
