@@ -339,11 +339,27 @@ def _cmd_poses(args: argparse.Namespace) -> int:
         weights=args.weights,
         rate_hz=args.rate,
         export_frames=args.export_frames,
+        gravity=not args.no_gravity,
         say=print,
     )
     write_poses(args.session, result)
     print(result.summary())
     print(f"written to /poses of {args.session} ({result.seconds:.0f} s of structure from motion)")
+    return 0
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from evcap.report.html import write_report
+
+    page = write_report(args.output, args.session)
+    print(f"{page}: open it in a browser (self-contained, no network needed)")
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from evcap.demo import run_demo
+
+    run_demo(args.output, preset=args.preset, fixtures=args.fixtures, force=args.force)
     return 0
 
 
@@ -535,6 +551,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--rate", type=float, metavar="HZ", help="frames per second (default: from the event rate)"
     )
     p.add_argument("--export-frames", metavar="DIR", help="also write the frames as PNG files")
+    p.add_argument(
+        "--no-gravity",
+        action="store_true",
+        help="leave the world's orientation as structure from motion gives it (by default it "
+        "is turned so that z is up when the session has IMU samples)",
+    )
     p.set_defaults(run=_cmd_poses)
 
     p = sub.add_parser(
@@ -593,6 +615,39 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("-f", "--force", action="store_true", help="overwrite a reconstruction in OUT")
     p.set_defaults(run=_cmd_reconstruct)
+
+    p = sub.add_parser(
+        "report",
+        help="one self-contained HTML page of a reconstruction",
+        description="Write OUT/report.html: the session's summary, its calibration maps, the "
+        "trajectory, the event edge maps, the recovered maps beside the truth where there is "
+        "one, relit views, the metrics and the accuracy-versus-time plot. Images are embedded: "
+        "it opens without a network.",
+    )
+    p.add_argument("output", metavar="OUT", help="a folder made by `evcap reconstruct`")
+    p.add_argument("--session", help="the session (default: the one OUT was made from)")
+    p.set_defaults(run=_cmd_report)
+
+    p = sub.add_parser(
+        "demo",
+        help="the whole pipeline on a bundled capture (no camera needed)",
+        description="Replay a bundled capture of a simulated color scene through the driver, "
+        "calibrate it from a bundled calibration recording, estimate its poses from the "
+        "events, reconstruct it (both stages) and write DIR/report.html. Each step is saved "
+        "as it ends: run the same command again after Ctrl-C to go on.",
+    )
+    p.add_argument(
+        "-o", "--output", default="evcap-demo", metavar="DIR", help="default: evcap-demo"
+    )
+    p.add_argument(
+        "--preset",
+        default="tiny",
+        choices=["tiny", "fast"],
+        help="tiny: minutes on a CPU (default); fast: the reconstruction's laptop preset",
+    )
+    p.add_argument("--fixtures", metavar="DIR", help="where the demo's captures are")
+    p.add_argument("-f", "--force", action="store_true", help="start a demo folder over")
+    p.set_defaults(run=_cmd_demo)
     return parser
 
 
@@ -606,6 +661,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except EvcapError as e:
         print(f"evcap: error: {e}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print("evcap: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as e:
+        print(f"evcap: interrupted{f': {e}' if str(e) else ''}", file=sys.stderr)
         return 130

@@ -14,6 +14,8 @@ import numpy as np
 
 from evcap.errors import InputError
 from evcap.poses.frames import event_frames, frame_rate
+from evcap.poses.gravity import Gravity, gravity_up, level
+from evcap.poses.track import PoseTrack
 from evcap.session import Session, stored_distortion, write_group
 
 MIN_EVENTS = 10_000
@@ -31,6 +33,7 @@ class PosesResult:
     mean_reprojection_px: float
     points: int  # 3D points of the model
     seconds: float  # structure from motion's time
+    gravity: Gravity | None = None  # when the world was leveled with the IMU
 
     @property
     def registered(self) -> int:
@@ -40,7 +43,16 @@ class PosesResult:
         return (
             f"{self.registered} of {self.frames} frames registered ({self.kind} frames at "
             f"{self.rate_hz:.1f} Hz), {self.points:,} points, mean reprojection error "
-            f"{self.mean_reprojection_px:.3f} px; scale arbitrary"
+            f"{self.mean_reprojection_px:.3f} px; scale arbitrary; {self.up}"
+        )
+
+    @property
+    def up(self) -> str:
+        if self.gravity is None:
+            return "orientation arbitrary"
+        return (
+            f"z up (leveled with {self.gravity.samples:,} IMU samples; their force "
+            f"{self.gravity.magnitude:.2f} m/s^2, spread {self.gravity.spread_deg:.1f} deg)"
         )
 
 
@@ -51,9 +63,11 @@ def estimate_poses(
     weights: str | Path | None = None,
     rate_hz: float | None = None,
     export_frames: str | Path | None = None,
+    gravity: bool = True,
     say: Callable[[str], None] = lambda line: None,
 ) -> PosesResult:
-    """Make frames from the session's events and register them by structure from motion."""
+    """Make frames from the session's events and register them by structure from motion;
+    with ``gravity``, turn the world so that z is up when the session has the IMU."""
     from evcap.poses.sfm import run_sfm
 
     with Session.open(path) as s:
@@ -72,6 +86,7 @@ def estimate_poses(
         hot = g["hot_pixels"][()].astype(bool) if "hot_pixels" in g else None
         events = s.events()
         aps = s.frames()
+        imu = s.imu()
     if len(events) < MIN_EVENTS:
         raise InputError(
             f"{path}: {len(events):,} events; poses from events need at least {MIN_EVENTS:,} "
@@ -102,15 +117,23 @@ def estimate_poses(
         say(f"frames written to {export_frames}")
     say("structure from motion (pycolmap), intrinsics fixed to the calibration")
     sfm = run_sfm(list(images), times, K, dist)
+    T_world_cam, up = sfm.T_world_cam, None
+    if gravity and len(imu) and len(sfm.t_us) >= 2:
+        try:
+            up = gravity_up(PoseTrack(sfm.t_us, T_world_cam), imu.t, imu.accel)
+            T_world_cam = level(T_world_cam, up.up)
+        except InputError as e:  # the poses stand without it
+            say(f"not leveled with the IMU: {e}")
     return PosesResult(
         t_us=sfm.t_us,
-        T_world_cam=sfm.T_world_cam,
+        T_world_cam=T_world_cam,
         frames=len(times),
         rate_hz=rate,
         kind="complementary filter" if with_aps else kind,
         mean_reprojection_px=float(sfm.mean_reprojection_px),
         points=int(sfm.points),
         seconds=float(sfm.seconds),
+        gravity=up,
     )
 
 
@@ -125,6 +148,7 @@ def write_poses(path: str | Path, result: PosesResult) -> None:
             "frame": "camera-to-world, OpenCV camera axes",
             "interpolation": "linear position, slerp rotation",
             "scale": "arbitrary (structure from motion: no metric scale)",
+            "up": result.up,
             "registered": result.registered,
             "frames": result.frames,
             "rate_hz": result.rate_hz,
