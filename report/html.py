@@ -1,0 +1,803 @@
+"""`evcap report OUT`: OUT/report.html, one self-contained page of a reconstruction folder and
+its session: the session's summary, the calibration maps, the trajectory, event edge maps, the
+recovered maps beside the truth, relit views, the metrics and the accuracy-versus-time plot.
+
+Every image is a PNG data URI and every plot inline SVG, so the page opens with no network.
+A section whose data is not there says so in one line.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import tomllib
+from datetime import datetime
+from html import escape
+from pathlib import Path
+
+import numpy as np
+
+from evcap.errors import InputError, InputNotFoundError
+from evcap.report.images import (
+    colormap,
+    depth_image,
+    depth_range,
+    event_image,
+    file_data_uri,
+    gray_image,
+    mark_pixels,
+    normal_image,
+    png_data_uri,
+    ramp_image,
+    srgb8,
+    value_range,
+)
+from evcap.report.svg import COLORS, Series, Track, line_plot, trajectory_views
+from evcap.session import Session, stored_distortion
+
+REPORT = "report.html"
+# the sections, in order: (anchor, heading)
+SECTIONS = (
+    ("session", "Session"),
+    ("calibration", "Calibration"),
+    ("trajectory", "Trajectory"),
+    ("edges", "Event edge maps"),
+    ("maps", "Recovered maps and the truth"),
+    ("relit", "Relit views and the light"),
+    ("metrics", "Metrics"),
+    ("progress", "Accuracy versus time"),
+)
+EDGE_MAPS = 3  # each takes about 2 s for a 346 x 260 sensor on one CPU core
+EDGE_SLICE_MS = 10.0  # stage II's default, when config.toml does not say
+MAX_VIEWS = 3  # test views shown side by side with the truth
+VIEW_PX = 200  # displayed width of each view's maps
+MAP_PX = 346  # displayed width of a calibration map
+
+# metrics.json keys: (readable name, unit, group); keys not listed show as they are
+METRICS = {
+    "render_psnr": ("render PSNR", "dB", "stage I (radiance)"),
+    "render_ssim": ("render SSIM", "", "stage I (radiance)"),
+    "render_psnr_cc": ("render PSNR, color-corrected", "dB", "stage I (radiance)"),
+    "render_ssim_cc": ("render SSIM, color-corrected", "", "stage I (radiance)"),
+    "lpips": ("LPIPS (AlexNet)", "", "stage I (radiance)"),
+    "depth_abs_err": ("depth error, mean absolute", "scene units", "stage I (radiance)"),
+    "radiance_normal_mae_deg": ("normal error, mean angle", "deg", "stage I (radiance)"),
+    "iterations": ("iterations", "", "stage I (radiance)"),
+    "gaussians": ("Gaussians", "", "stage I (radiance)"),
+    "seconds": ("time", "s", "stage I (radiance)"),
+    "normal_mae_deg": ("normal error, mean angle", "deg", "stage II (material)"),
+    "pbr_render_psnr": ("shaded render PSNR", "dB", "stage II (material)"),
+    "pbr_render_ssim": ("shaded render SSIM", "", "stage II (material)"),
+    "pbr_render_psnr_cc": ("shaded render PSNR, color-corrected", "dB", "stage II (material)"),
+    "pbr_render_ssim_cc": ("shaded render SSIM, color-corrected", "", "stage II (material)"),
+    "base_color_psnr": ("base color PSNR", "dB", "stage II (material)"),
+    "base_color_ssim": ("base color SSIM", "", "stage II (material)"),
+    "base_color_psnr_cc": ("base color PSNR, color-corrected", "dB", "stage II (material)"),
+    "base_color_ssim_cc": ("base color SSIM, color-corrected", "", "stage II (material)"),
+    "base_color_psnr_cc_shadow": ("base color PSNR in shadows", "dB", "stage II (material)"),
+    "shadow_share": ("surface in shadow", "fraction", "stage II (material)"),
+    "base_color_psnr_cc_bleeding": (
+        "base color PSNR where color bleeds",
+        "dB",
+        "stage II (material)",
+    ),
+    "bleeding_share": ("surface with color bleeding", "fraction", "stage II (material)"),
+    "roughness_mae": ("roughness error, mean absolute", "", "stage II (material)"),
+    "material_iterations": ("iterations", "", "stage II (material)"),
+    "material_seconds": ("time", "s", "stage II (material)"),
+    "effects": ("effects modelled", "", "stage II (material)"),
+    "relit": ("relit under a new light", "", "stage II (material)"),
+    "views": ("views evaluated", "", "run"),
+    "preset": ("preset", "", "run"),
+    "seed": ("seed", "", "run"),
+    "zero_events": ("pixels without events", "", "run"),
+    "device": ("device", "", "run"),
+    "backend": ("rasterizer", "", "run"),
+    "interrupted": ("interrupted (Ctrl-C)", "", "run"),
+}
+
+STYLE = """
+body { font-family: sans-serif; margin: 24px auto; max-width: 1180px; color: #222; }
+h1 { font-size: 22px; } h2 { font-size: 18px; border-bottom: 1px solid #ccc; margin-top: 32px; }
+table { border-collapse: collapse; margin: 8px 0; }
+td, th { border: 1px solid #ddd; padding: 3px 8px; text-align: left; vertical-align: top; }
+td.num { text-align: right; font-variant-numeric: tabular-nums; }
+th.group { background: #f2f2f2; }
+pre { background: #f7f7f7; padding: 8px; overflow-x: auto; }
+figure { display: inline-block; margin: 4px 12px 12px 0; vertical-align: top; }
+figcaption { font-size: 12px; }
+img { image-rendering: pixelated; }
+figure img, .views img { border: 1px solid #ddd; }
+.views img { display: block; }
+.bar { font-size: 11px; } .bar img { vertical-align: middle; margin: 0 4px; }
+.pair { display: inline-block; margin-right: 16px; }
+.missing { color: #666; font-style: italic; }
+.plots svg { margin: 0 12px 12px 0; }
+nav a { margin-right: 10px; }
+"""
+
+
+def write_report(out: str | Path, session: str | Path | None = None) -> Path:
+    """Write ``out``/report.html for the reconstruction folder ``out`` and its session
+    (default: the one its config.toml names); returns the page's path."""
+    out = Path(out)
+    config = _read_config(out)
+    session_path = _session_path(out, config, session)
+    metrics, metrics_note = _read_metrics(out)
+    with Session.open(session_path) as s:
+        bodies = {
+            "session": _session_section(s, config),
+            "calibration": _calibration_section(s),
+            "trajectory": _trajectory_section(s),
+            "edges": _edges_section(s, config),
+            "maps": _maps_section(out, s),
+        }
+    bodies["relit"] = _relit_section(out)
+    bodies["metrics"] = metrics_note or _metrics_section(metrics)
+    bodies["progress"] = _progress_section(out, metrics)
+    path = out / REPORT
+    path.write_text(_page(out, bodies), encoding="utf-8")
+    return path
+
+
+# -- inputs ----------------------------------------------------------------------------------
+
+
+def _read_config(out: Path) -> dict:
+    """OUT's config.toml ({} when there is none), after checking that OUT is a
+    reconstruction folder."""
+    if not out.is_dir():
+        raise InputNotFoundError(
+            f"{out}: no such folder; give the OUT folder of `evcap reconstruct SESSION -o OUT`"
+        )
+    marks = ("config.toml", "metrics.json", "checkpoint/radiance.pt")
+    if not any((out / m).exists() for m in marks):
+        raise InputError(
+            f"{out} is not a reconstruction folder (it has none of {', '.join(marks)}); "
+            "give the OUT folder of `evcap reconstruct SESSION -o OUT`"
+        )
+    path = out / "config.toml"
+    if not path.exists():
+        return {}
+    try:
+        return tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise InputError(f"{path} is not valid TOML: {e}") from None
+
+
+def _session_path(out: Path, config: dict, session: str | Path | None) -> Path:
+    if session is not None:
+        path = Path(session)
+        if not path.is_file():
+            raise InputNotFoundError(f"session {path}: no such file (check --session)")
+        return path
+    named = config.get("reconstruct", {}).get("session")
+    if not named:
+        raise InputError(
+            f"{out}/config.toml does not name the session the reconstruction was made from; "
+            "name it with --session SESSION"
+        )
+    path = Path(named)
+    # a relative path is relative to where `evcap reconstruct` ran: try here, then beside OUT
+    for candidate in (path, out / path, out.parent / path):
+        if candidate.is_file():
+            return candidate
+    raise InputNotFoundError(
+        f"the session {named} that {out}/config.toml names is not there (seen from "
+        f"{Path.cwd()}); name it with --session SESSION"
+    )
+
+
+def _read_metrics(out: Path) -> tuple[dict, str]:
+    """(metrics.json, "") or ({}, a note saying why there are none)."""
+    path = out / "metrics.json"
+    if not path.exists():
+        return {}, _missing(f"{path.name} is not there: the reconstruction did not finish.")
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        return {}, _missing(f"{path.name} is not readable JSON ({e}).")
+    if not isinstance(data, dict):
+        return {}, _missing(f"{path.name} does not hold a table of metrics.")
+    return data, ""
+
+
+# -- small pieces of HTML --------------------------------------------------------------------
+
+
+def _missing(text: str) -> str:
+    return f'<p class="missing">{escape(text)}</p>'
+
+
+def _number(value: object, digits: int = 4) -> str:
+    """A value for a table: numbers to ``digits`` significant digits, NaN, infinity and None
+    as n/a."""
+    if value is None:
+        return "n/a"
+    if isinstance(value, bool | np.bool_):
+        return "yes" if value else "no"
+    if isinstance(value, int | np.integer):
+        return f"{int(value):,}"
+    if isinstance(value, float | np.floating):
+        v = float(value)
+        return f"{v:.{digits}g}" if math.isfinite(v) else "n/a"
+    return str(value)
+
+
+def _table(rows: list[tuple[str, str]]) -> str:
+    body = "".join(f"<tr><th>{escape(k)}</th><td>{escape(v)}</td></tr>" for k, v in rows)
+    return f"<table>{body}</table>"
+
+
+def _figure(uri: str, caption: str, width: int) -> str:
+    """An image with its caption (HTML: it may hold a color bar) under it."""
+    alt = re.sub(r"<[^>]*>", " ", caption.split("<br>")[0])
+    return (
+        f'<figure style="max-width: {width + 2}px"><img src="{uri}" width="{width}" '
+        f'alt="{escape(alt, quote=True)}"><figcaption>{caption}</figcaption></figure>'
+    )
+
+
+def _color_bar(lo: float, hi: float, unit: str = "") -> str:
+    """The color map's ramp between its end values (HTML, for a caption)."""
+    return (
+        f'<span class="bar">{escape(_number(lo, 3))}'
+        f'<img src="{png_data_uri(ramp_image())}" width="120" height="10" alt="color bar">'
+        f"{escape(_number(hi, 3))} {escape(unit)}</span>"
+    )
+
+
+def _page(out: Path, bodies: dict[str, str]) -> str:
+    nav = " ".join(f'<a href="#{key}">{escape(title)}</a>' for key, title in SECTIONS)
+    sections = "".join(
+        f'<section id="{key}"><h2>{k}. {escape(title)}</h2>{bodies[key]}</section>'
+        for k, (key, title) in enumerate(SECTIONS, start=1)
+    )
+    written = datetime.now().astimezone().isoformat(timespec="seconds")
+    return (
+        "<!DOCTYPE html>\n"
+        f'<html lang="en"><head><meta charset="utf-8"><title>evcap report: '
+        f"{escape(out.name)}</title><style>{STYLE}</style></head><body>"
+        f"<h1>evcap report: {escape(str(out))}</h1>"
+        f"<p>Written {escape(written)} by <code>evcap report</code>.</p>"
+        f"<nav>{nav}</nav>{sections}</body></html>\n"
+    )
+
+
+# -- 1. the session --------------------------------------------------------------------------
+
+
+def _session_section(s: Session, config: dict) -> str:
+    from evcap.summary import format_summary, summarize
+
+    parts = [f"<pre>{escape(format_summary(summarize(s)))}</pre>"]
+    run = config.get("reconstruct", {})
+    if run:
+        keys = ("stage", "preset", "device", "backend", "seed", "ablate", "relight")
+        rows = [(k, str(run[k])) for k in keys if k in run and run[k] != ""]
+        parts.append("<p>Reconstructed with:</p>" + _table(rows))
+    return "".join(parts)
+
+
+# -- 2. the calibration ----------------------------------------------------------------------
+
+
+def _calibration_section(s: Session) -> str:
+    if "calibration" not in s.groups:
+        return _missing("The session has no /calibration group (run `evcap calibrate` on it).")
+    g = s.group("calibration")
+    a = g.attrs
+    rows = [("source", str(a.get("source", "unknown")))]
+    for key in ("intrinsics_source", "threshold_source"):
+        if key in a:
+            rows.append((key.replace("_", " "), str(a[key])))
+    if "K" in g:
+        K = g["K"][()]
+        rows.append(
+            (
+                "intrinsics K",
+                f"fx {_number(K[0, 0])}, fy {_number(K[1, 1])}, cx {_number(K[0, 2])}, "
+                f"cy {_number(K[1, 2])} px",
+            )
+        )
+        dist = stored_distortion(g)
+        coefficients = " ".join(f"{d:+.4g}" for d in dist) if len(dist) else "none"
+        rows.append(("distortion", f"{a.get('distortion_model', 'unknown')}: {coefficients}"))
+    else:
+        rows.append(("intrinsics", "not measured"))
+    # the simulator's truth names it reprojection_error_px
+    rms = a.get("rms_reprojection_px", a.get("reprojection_error_px"))
+    rows.append(("RMS reprojection error", f"{_number(rms)} px"))
+    if "view_rms_px" in g:
+        rows.append(("board views used", f"{len(g['view_rms_px'])}"))
+    for key, name, unit in (
+        ("refractory_period_us", "refractory period", "µs"),
+        ("background_activity_hz", "background activity", "Hz per pixel"),
+        ("shot_noise_hz", "shot noise", "Hz per pixel"),
+        ("threshold_confident_share", "pixels with confident thresholds", "fraction"),
+    ):
+        if key in a:
+            rows.append((name, f"{_number(a[key])} {unit}"))
+    hot = g["hot_pixels"][()].astype(bool) if "hot_pixels" in g else None
+    if hot is not None:
+        rows.append(("hot pixels", f"{int(hot.sum()):,}"))
+    if "warnings" in a:
+        rows.append(("warnings", "; ".join(_json_list(a["warnings"]))))
+    return _table(rows) + _calibration_maps(g, hot)
+
+
+def _json_list(raw: object) -> list[str]:
+    try:
+        value = json.loads(str(raw))
+    except json.JSONDecodeError:
+        return [str(raw)]
+    return [str(v) for v in value] if isinstance(value, list) else [str(value)]
+
+
+def _calibration_maps(g, hot: np.ndarray | None) -> str:
+    figures = []
+    maps = [g[k][()].astype(np.float64) for k in ("threshold_on", "threshold_off") if k in g]
+    if len(maps) == 2:
+        # one range for both, so that ON and OFF compare at a glance
+        lo, hi = value_range(np.concatenate([m.ravel() for m in maps]))
+        for name, m in zip(("ON", "OFF"), maps, strict=True):
+            finite = m[np.isfinite(m)]
+            if finite.size and np.ptp(finite) == 0:
+                caption = f"{name} threshold: {_number(finite[0], 3)} log units everywhere"
+            else:
+                mean = finite.mean() if finite.size else None
+                caption = f"{name} threshold (mean {_number(mean, 3)} log units)<br>" + _color_bar(
+                    lo, hi, "log"
+                )
+            figures.append(_figure(png_data_uri(colormap(m, lo, hi)), caption, MAP_PX))
+    if "threshold_confidence" in g:
+        c = g["threshold_confidence"][()].astype(np.float64)
+        share = float((c >= 0.5).mean()) if c.size else 0.0
+        figures.append(
+            _figure(
+                png_data_uri(colormap(c, 0.0, 1.0)),
+                f"threshold fit confidence ({share:.0%} of pixels ≥ 0.5)<br>"
+                + _color_bar(0.0, 1.0),
+                MAP_PX,
+            )
+        )
+    if "event_rate_hz" in g:
+        rate = np.log10(np.maximum(g["event_rate_hz"][()].astype(np.float64), 1e-3))
+        lo, hi = value_range(rate, (1, 99.9))
+        image = colormap(rate, lo, hi)
+        if hot is not None and hot.shape == rate.shape:
+            image = mark_pixels(image, hot)
+        n = int(hot.sum()) if hot is not None else 0
+        figures.append(
+            _figure(
+                png_data_uri(image),
+                f"event rate, {n} hot pixels circled<br>" + _color_bar(lo, hi, "log10 Hz"),
+                MAP_PX,
+            )
+        )
+    elif hot is not None and hot.any():
+        image = mark_pixels(np.full(hot.shape + (3,), 255, np.uint8), hot)
+        figures.append(_figure(png_data_uri(image), f"{int(hot.sum())} hot pixels", MAP_PX))
+    if not figures:
+        return _missing("The calibration holds no per-pixel maps.")
+    if "event_rate_hz" not in g:
+        figures.append(_missing("No event-rate map (the calibration did not measure the noise)."))
+    return "<div>" + "".join(figures) + "</div>"
+
+
+# -- 3. the trajectory -----------------------------------------------------------------------
+
+
+def _trajectory_section(s: Session) -> str:
+    from evcap.poses.align import apply_similarity, pose_errors
+    from evcap.poses.track import PoseTrack
+
+    if "poses" not in s.groups:
+        return _missing("The session has no /poses group (run `evcap poses` on it).")
+    g = s.group("poses")
+    t, T = g["t"][()], g["T_world_cam"][()]
+    source = str(g.attrs.get("source", "unknown"))
+    arbitrary = "arbitrary" in str(g.attrs.get("scale", ""))
+    rows = [("source", source), ("poses", f"{len(t):,}")]
+    if "scale" in g.attrs:
+        rows.append(("scale", str(g.attrs["scale"])))
+    parts: list[str] = []
+    truth = None
+    if "gt" in s.groups and "T_world_cam" in s.group("gt") and "t" in s.group("gt"):
+        truth = s.group("gt")["t"][()], s.group("gt")["T_world_cam"][()]
+    estimate = Track("poses", T[:, :3, 3], COLORS[0], T[:, :3, 2])
+    tracks = [estimate]
+    units = "arbitrary units" if arbitrary else "scene units"
+    if truth is not None and source == "ground truth":
+        parts.append("<p>The poses are the simulator's truth: nothing to compare.</p>")
+    elif truth is not None:
+        t_true, T_true = truth
+        try:
+            track = PoseTrack(t, T)
+            inside = (t_true >= track.start) & (t_true <= track.end)
+            errors = pose_errors(track.at(t_true[inside]), T_true[inside])
+        except InputError as e:
+            parts.append(_missing(f"The poses cannot be compared with the truth: {e}"))
+        else:
+            if arbitrary:
+                aligned = apply_similarity(T, errors["scale"], errors["R"], errors["t"])
+                estimate.centres, estimate.forward = aligned[:, :3, 3], aligned[:, :3, 2]
+                estimate.label = "poses, aligned (similarity)"
+                units = "scene units"
+            estimate.dashed = True
+            tracks.insert(0, Track("truth", T_true[:, :3, 3], COLORS[1], T_true[:, :3, 2]))
+            rows += [
+                (
+                    "compared at",
+                    f"{int(inside.sum())} true poses, aligned by {errors['aligned_by']}",
+                ),
+                (
+                    "rotation error",
+                    f"median {_number(errors['rotation_median_deg'], 3)} deg, "
+                    f"RMS {_number(errors['rotation_rms_deg'], 3)} deg",
+                ),
+                (
+                    "translation error",
+                    f"median {_number(errors['translation_median_pct'], 3)} %, "
+                    f"RMS {_number(errors['translation_rms_pct'], 3)} % of the path's extent "
+                    f"({_number(errors['extent'], 3)} scene units)",
+                ),
+            ]
+            seconds = t_true[inside] / 1e6
+            parts.append(
+                '<div class="plots">'
+                + line_plot(
+                    [
+                        Series("rotation (deg)", seconds, errors["rotation_deg"], COLORS[0]),
+                        Series(
+                            "translation (% of extent)",
+                            seconds,
+                            errors["translation_pct"],
+                            COLORS[1],
+                        ),
+                    ],
+                    title="pose errors against the truth",
+                    x_label="time (s)",
+                    y_label="error",
+                )
+                + "</div>"
+            )
+    else:
+        parts.append("<p>The session has no true poses (/gt/T_world_cam) to compare with.</p>")
+    note = (
+        "<p>Camera centres; strokes show where a few of the cameras look, a dot where the path "
+        "starts. Simulated worlds have z up.</p>"
+    )
+    return _table(rows) + note + trajectory_views(tracks, units=units) + "".join(parts)
+
+
+# -- 4. event edge maps ----------------------------------------------------------------------
+
+
+def _edges_section(s: Session, config: dict) -> str:
+    from evcap.recon.edges import edge_map
+
+    span = s.time_range()
+    if span is None or s.n_events == 0:
+        return _missing("The session has no events.")
+    slice_us = round(float(config.get("material", {}).get("edge_slice_ms", EDGE_SLICE_MS)) * 1000)
+    if span[1] - span[0] < slice_us:
+        return _missing("The session is shorter than one edge map's slice of events.")
+    w, h = s.sensor.width, s.sensor.height
+    hot = np.zeros(w * h, bool)
+    if "calibration" in s.groups and "hot_pixels" in s.group("calibration"):
+        stored = s.group("calibration")["hot_pixels"][()]
+        if stored.size == hot.size:
+            hot = stored.ravel().astype(bool)
+    times = np.linspace(span[0] + slice_us, span[1], EDGE_MAPS + 2)[1:-1].astype(np.int64)
+    figures = []
+    for t in times:
+        ev = s.events(int(t) - slice_us, int(t))
+        keep = ~hot[ev.y.astype(np.int64) * w + ev.x]
+        x, y = ev.x[keep].astype(np.int64), ev.y[keep].astype(np.int64)
+        p, te = ev.p[keep], ev.t[keep]
+        edges, _ = edge_map(np.stack([x, y], 1), te, int(t), w, h)
+        when = f"{t / 1e6:.3f} s, {len(te):,} events"
+        figures.append(
+            _figure(png_data_uri(event_image(x, y, p, w, h)), f"events as they came ({when})", 260)
+        )
+        figures.append(
+            _figure(png_data_uri(gray_image(edges)), f"edge map, motion-compensated ({when})", 260)
+        )
+    note = (
+        "<p>Stage II computes its edge maps for its own training frames and does not save "
+        f"them; these {len(times)} are made here the same way (evcap.recon.edges, contrast "
+        f"maximisation) from the {slice_us / 1000:g} ms of events before each time, hot "
+        "pixels left out. Left: the events as they came (ON red, OFF blue); right: the edge "
+        "map (white: an edge).</p>"
+    )
+    return note + '<div class="views">' + _pairs(figures) + "</div>"
+
+
+def _pairs(figures: list[str]) -> str:
+    return "".join(
+        f'<div class="pair">{a}{b}</div>' for a, b in zip(figures[::2], figures[1::2], strict=True)
+    )
+
+
+# -- 5. recovered maps and the truth ---------------------------------------------------------
+
+
+def _maps_section(out: Path, s: Session) -> str:
+    from evcap.recon.evaluate import test_views
+
+    _, truth = test_views(s)
+    stages = []
+    for label, folder in (
+        ("stage I: radiance field", out / "renders"),
+        ("stage II: material, shaded", out / "renders" / "material"),
+    ):
+        for name in ("test", "path"):
+            if (folder / f"{name}.npz").exists():
+                stages.append((label, name, dict(np.load(folder / f"{name}.npz"))))
+                break
+    if not stages:
+        pngs = sorted((out / "renders").rglob("*.png")) if (out / "renders").is_dir() else []
+        pngs = [p for p in pngs if "relit" not in p.parts]
+        if not pngs:
+            return _missing("There are no rendered views (renders/ is missing or empty).")
+        figures = [_figure(file_data_uri(p), escape(p.name), VIEW_PX) for p in pngs[:24]]
+        return _missing("No renders/*.npz: the PNGs as they were written.") + "".join(figures)
+    kind = stages[0][1]
+    intro = (
+        "Held-out test views beside the session's truth."
+        if truth
+        else "Views along the camera path (the session has no truth for them)."
+    )
+    if "radiance" in truth:
+        intro += (
+            " Radiance is shown after a per-channel gain and offset fitted to the truth "
+            "(events give radiance only up to a gain per channel), as the _cc metrics are."
+        )
+    count = min([MAX_VIEWS, *(len(v["radiance"]) for _, _, v in stages if "radiance" in v)])
+    tables = [_view_table(i, stages, truth) for i in range(count)]
+    return f"<p>{escape(intro)} ({kind} views; {count} shown)</p>" + "".join(tables)
+
+
+MAP_COLUMNS = (
+    ("radiance", "radiance"),
+    ("normal", "normal (camera frame)"),
+    ("depth", "depth"),
+    ("base_color", "base color"),
+    ("roughness", "roughness"),
+)
+
+
+def _view_table(i: int, stages: list, truth: dict) -> str:
+    from evcap.recon.metrics import fit_color_correction
+
+    rows = []
+    all_depths = [v["depth"][i] for _, _, v in stages if "depth" in v and len(v["depth"]) > i]
+    if "depth" in truth and len(truth["depth"]) > i:
+        all_depths.append(truth["depth"][i])
+    lo, hi = depth_range(*all_depths)
+    columns = [k for k, _ in MAP_COLUMNS if any(k in v for _, _, v in stages) or k in truth]
+    for label, _, views in stages:
+        images = {}
+        for key in columns:
+            if key not in views or len(views[key]) <= i:
+                continue
+            value = views[key][i]
+            if key == "radiance" and "radiance" in truth:
+                pred, gt = views["radiance"], truth["radiance"]
+                if pred.shape == gt.shape and np.isfinite(pred).all():
+                    cc = fit_color_correction(pred, gt)
+                    value = value * cc[:, 0] + cc[:, 1]
+            images[key] = _map_image(key, value, lo, hi)
+        rows.append((label, images))
+    if truth:
+        images = {
+            key: _map_image(key, truth[key][i], lo, hi)
+            for key in columns
+            if key in truth and len(truth[key]) > i
+        }
+        rows.append(("truth", images))
+    names = dict(MAP_COLUMNS)
+    head = "".join(f"<th>{escape(names[k])}</th>" for k in columns)
+    body = ""
+    for label, images in rows:
+        cells = "".join(
+            f'<td><img src="{images[k]}" width="{VIEW_PX}" alt="{escape(label)} {k}"></td>'
+            if k in images
+            else "<td>&mdash;</td>"
+            for k in columns
+        )
+        body += f"<tr><th>{escape(label)}</th>{cells}</tr>"
+    bar = (
+        f"<p>depth: {_color_bar(lo, hi, 'scene units')}; dark: no surface; magenta: not a "
+        "number</p>"
+    )
+    return f"<h3>view {i}</h3><table class='views'><tr><th></th>{head}</tr>{body}</table>{bar}"
+
+
+def _map_image(key: str, value: np.ndarray, lo: float, hi: float) -> str:
+    if key == "normal":
+        return png_data_uri(normal_image(value))
+    if key == "depth":
+        return png_data_uri(depth_image(value, lo, hi))
+    if key == "roughness":
+        return png_data_uri(gray_image(value))
+    return png_data_uri(srgb8(value))
+
+
+# -- 6. relit views and the light ------------------------------------------------------------
+
+
+def _relit_section(out: Path) -> str:
+    parts = []
+    if (out / "environment.png").exists():
+        parts.append(
+            _figure(
+                file_data_uri(out / "environment.png"),
+                "the light stage II learnt (latitude-longitude, z up)",
+                360,
+            )
+        )
+    relit = out / "renders" / "relit"
+    views = sorted(p for p in relit.glob("*.png") if p.name != "environment.png")
+    if (relit / "environment.png").exists():
+        parts.append(
+            _figure(file_data_uri(relit / "environment.png"), "the new light (--relight)", 360)
+        )
+    if not parts:
+        return _missing("No environment map and no relit views (stage II did not run).")
+    html = "<div>" + "".join(parts) + "</div>"
+    if not views:
+        return html + _missing(
+            "No relit views: the reconstruction was not given a new light (--relight ENV)."
+        )
+    figures = [_figure(file_data_uri(p), escape(p.stem), VIEW_PX + 60) for p in views]
+    return html + "<p>The views relit under the new light:</p><div>" + "".join(figures) + "</div>"
+
+
+# -- 7. metrics ------------------------------------------------------------------------------
+
+
+def _metrics_section(metrics: dict) -> str:
+    if not metrics:
+        return _missing("metrics.json is empty.")
+    names = dict(METRICS)
+    if "radiance_normal_mae_deg" not in metrics:  # stage I only: its normals are the last
+        names["normal_mae_deg"] = ("normal error, mean angle", "deg", "stage I (radiance)")
+    keys = [k for k in METRICS if k in metrics] + [k for k in metrics if k not in METRICS]
+    groups: dict[str, list[str]] = {}
+    for key in keys:
+        if key == "history":
+            continue  # plotted in the next section
+        value = metrics[key]
+        name, unit, group = names.get(key, (key.replace("_", " "), "", "other"))
+        if isinstance(value, dict):
+            text = ", ".join(
+                f"{k}: {'on' if v is True else 'off' if v is False else _number(v)}"
+                for k, v in value.items()
+            )
+            cell = f"<td>{escape(text)}</td>"
+        elif isinstance(value, list):
+            cell = f"<td>{len(value)} entries</td>"
+        elif value is None or (isinstance(value, int | float) and not isinstance(value, bool)):
+            cell = f'<td class="num">{escape(_number(value))}</td>'
+        else:
+            cell = f"<td>{escape(_number(value))}</td>"
+        groups.setdefault(group, []).append(
+            f"<tr><td>{escape(name)}</td>{cell}<td>{escape(unit)}</td></tr>"
+        )
+    order = ["stage I (radiance)", "stage II (material)", "run", "other"]
+    body = "".join(
+        f'<tr><th class="group" colspan="3">{escape(g)}</th></tr>' + "".join(groups[g])
+        for g in order
+        if g in groups
+    )
+    note = (
+        "<p>PSNR and SSIM compare the sRGB images with the truth; color-corrected: after a "
+        "per-channel gain and offset fitted by least squares.</p>"
+    )
+    return note + f"<table><tr><th>metric</th><th>value</th><th>unit</th></tr>{body}</table>"
+
+
+# -- 8. accuracy versus time -----------------------------------------------------------------
+
+
+def _progress_section(out: Path, metrics: dict) -> str:
+    plots, notes = [], []
+    logs = {}
+    for stage, name in (("stage I", "radiance.pt"), ("stage II", "material.pt")):
+        path = out / "checkpoint" / name
+        if path.exists():
+            log, note = _training_log(path)
+            if log:
+                logs[stage] = log
+            if note:
+                notes.append(note)
+    if "stage I" in logs:
+        log = logs["stage I"]
+        plots.append(
+            line_plot(
+                [
+                    Series(key, _column(log, "seconds"), _column(log, key), color)
+                    for key, color in zip(("loss", "event", "anchor"), COLORS, strict=False)
+                    if key in log[0]
+                ],
+                title="stage I: training loss",
+                x_label="training time (s)",
+                y_label="loss",
+                log_y=True,
+            )
+        )
+    else:
+        notes.append(_missing("No stage-I training log (checkpoint/radiance.pt)."))
+    if "stage II" in logs:
+        log = logs["stage II"]
+        plots.append(
+            line_plot(
+                [
+                    Series(key, _column(log, "seconds"), _column(log, key), color)
+                    for key, color in zip(("loss", "event", "distill", "tv"), COLORS, strict=False)
+                    if key in log[0]
+                ],
+                title="stage II: training loss",
+                x_label="training time (s), edge maps included",
+                y_label="loss",
+                log_y=True,
+            )
+        )
+    history = metrics.get("history")
+    if isinstance(history, list) and history and all(isinstance(h, dict) for h in history):
+        seconds = np.array([_float(h.get("seconds")) for h in history])
+        series = [
+            Series(label, seconds, np.array([_float(h.get(key)) for h in history]), color, dashed)
+            for key, label, color, dashed in (
+                ("render_psnr_cc", "PSNR, color-corrected", COLORS[0], False),
+                ("render_psnr", "PSNR", COLORS[1], True),
+            )
+            if any(key in h for h in history)
+        ]
+        if series:
+            plots.append(
+                line_plot(
+                    series,
+                    title="stage I: render PSNR on held-out views",
+                    x_label="training time (s)",
+                    y_label="PSNR (dB)",
+                )
+            )
+        else:
+            notes.append(_missing("metrics.json's history holds no PSNR."))
+    else:
+        notes.append(
+            _missing(
+                "No accuracy history in metrics.json (a reconstruction without held-out "
+                "truth, or made before it was recorded)."
+            )
+        )
+    return "".join(notes) + '<div class="plots">' + "".join(plots) + "</div>"
+
+
+def _training_log(path: Path) -> tuple[list[dict], str]:
+    """(the "log" entries of a checkpoint, "") or ([], a note saying why there are none)."""
+    import torch
+
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001  any unreadable file: say so, keep the page
+        return [], _missing(f"{path.name} is not readable ({type(e).__name__}: {e}).")
+    log = state.get("log") if isinstance(state, dict) else None
+    if not isinstance(log, list) or not log or not all(isinstance(x, dict) for x in log):
+        return [], _missing(f"{path.name} holds no training log.")
+    return log, ""
+
+
+def _float(value: object) -> float:
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _column(log: list[dict], key: str) -> np.ndarray:
+    return np.array([_float(x.get(key)) for x in log])
