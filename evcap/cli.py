@@ -331,17 +331,20 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _cmd_poses(args: argparse.Namespace) -> int:
+    from evcap._progress import progress_bar
     from evcap.poses.estimate import estimate_poses, write_poses
 
-    result = estimate_poses(
-        args.session,
-        kind=args.frames,
-        weights=args.weights,
-        rate_hz=args.rate,
-        export_frames=args.export_frames,
-        gravity=not args.no_gravity,
-        say=print,
-    )
+    with progress_bar("structure from motion") as update:
+        result = estimate_poses(
+            args.session,
+            kind=args.frames,
+            weights=args.weights,
+            rate_hz=args.rate,
+            export_frames=args.export_frames,
+            gravity=not args.no_gravity,
+            say=print,
+            progress=update,
+        )
     write_poses(args.session, result)
     print(result.summary())
     print(f"written to /poses of {args.session} ({result.seconds:.0f} s of structure from motion)")

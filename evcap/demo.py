@@ -197,7 +197,8 @@ def _calibrate(ctx: DemoContext) -> str:
 def _poses(ctx: DemoContext) -> str:
     from evcap.poses.estimate import estimate_poses, write_poses
 
-    result = estimate_poses(ctx.scene)
+    with ctx.progress("structure from motion") as update:
+        result = estimate_poses(ctx.scene, progress=update)
     write_poses(ctx.scene, result)
     return result.summary()
 

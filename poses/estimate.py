@@ -65,6 +65,7 @@ def estimate_poses(
     export_frames: str | Path | None = None,
     gravity: bool = True,
     say: Callable[[str], None] = lambda line: None,
+    progress: Callable[[int, int, str], None] | None = None,
 ) -> PosesResult:
     """Make frames from the session's events and register them by structure from motion;
     with ``gravity``, turn the world so that z is up when the session has the IMU."""
@@ -116,7 +117,7 @@ def estimate_poses(
         write_frames(images, times, export_frames)
         say(f"frames written to {export_frames}")
     say("structure from motion (pycolmap), intrinsics fixed to the calibration")
-    sfm = run_sfm(list(images), times, K, dist)
+    sfm = run_sfm(list(images), times, K, dist, progress=progress)
     T_world_cam, up = sfm.T_world_cam, None
     if gravity and len(imu) and len(sfm.t_us) >= 2:
         try:
