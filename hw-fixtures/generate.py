@@ -1,20 +1,32 @@
 """Make the hardware-replay fixtures in this folder (see README.md here for their format).
 
-    .venv/bin/python hw-fixtures/generate.py            # (re)write every fixture
+    .venv/bin/python hw-fixtures/generate.py            # (re)write the fixtures made here
+    .venv/bin/python hw-fixtures/generate.py --demo     # (re)make the simulated ones (minutes)
     .venv/bin/python hw-fixtures/generate.py --check    # compare with what is committed
 
 Each fixture's streams are made here, encoded into the DAVIS346 wire format with
 evcap.acquire.encoder, and written with the content a correct decoder must give back
 (expected.npz, expected.json). The expected content is computed here from the inputs, not by
 decoding. Everything is seeded: the same code gives the same bytes.
+
+The fixtures of `evcap demo` (demo-scene, demo-calibration) are simulated scenes
+(sim/scenes/demo_orbit.toml, demo_calibration.toml) encoded by evcap.sim.fixture, with
+demo-scene's ground truth beside it (truth.h5, evcap.sim.truth). Simulating them takes minutes,
+so only --demo makes them; --check records each through the driver and compares it with its
+expected content (counts, digests of the events and frames, the small streams) and checks that
+its scene file is the one it was made from, in seconds.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
 import os
+import shutil
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +41,23 @@ from evcap.streams import Frames, TriggerKind, Triggers
 HERE = Path(__file__).resolve().parent
 SHARED = Path(os.environ.get("EVCAP_SHARED", HERE.parent.parent / "shared"))
 SAMPLE = SHARED / "data" / "davis346-sample" / "davis346_test_data.aedat4"
+SCENES = HERE.parent / "sim" / "scenes"
 W, H = 346, 260
+# The demo's camera: both recordings come from it (one sensor, one USB serial).
+DEMO_SERIAL = "00000346"
+DEMO = {
+    "demo-scene": (
+        "demo_orbit.toml",
+        "simulated Color-DAVIS346 (the demo's camera): a checkered sphere, the camera "
+        "orbiting it, 1 s, APS frames at 10 Hz, IMU at 1 kHz, a sensor with threshold "
+        "spread, hot pixels and noise; its ground truth in truth.h5",
+    ),
+    "demo-calibration": (
+        "demo_calibration.toml",
+        "simulated Color-DAVIS346 (the demo's camera): the default ChArUco board, the "
+        "camera swung in front of it, 1 s, APS frames, IMU at 1 kHz",
+    ),
+}
 
 
 # -- scenes -------------------------------------------------------------------------------------
@@ -305,6 +333,85 @@ def generate(out: Path) -> list[str]:
     return made
 
 
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def generate_demo(out: Path, keep: Path | None = None) -> list[str]:
+    """Simulate the demo's scenes and write their fixtures (and demo-scene's truth.h5);
+    ``keep``: a folder to keep the simulated sessions in."""
+    from evcap.sim.fixture import write_session_fixture
+    from evcap.sim.scene import load_scene
+    from evcap.sim.simulate import simulate
+    from evcap.sim.truth import write_truth
+
+    made = []
+    with tempfile.TemporaryDirectory() as tmp:
+        where = keep or Path(tmp)
+        where.mkdir(parents=True, exist_ok=True)
+        for name, (scene_file, description) in DEMO.items():
+            scene_path = SCENES / scene_file
+            session = where / f"{name}.h5"
+            start = time.perf_counter()
+            stats = simulate(load_scene(scene_path), session, overwrite=True)
+            seconds = time.perf_counter() - start
+            folder = out / name
+            if folder.exists():
+                shutil.rmtree(folder)
+            write_session_fixture(
+                session,
+                folder,
+                serial=DEMO_SERIAL,
+                description=description,
+                compact=True,
+                about={
+                    "scene": f"sim/scenes/{scene_file}",
+                    "scene_sha256": _sha256(scene_path),
+                },
+            )
+            if name == "demo-scene":
+                write_truth(session, folder / "truth.h5")
+            sizes = ", ".join(f"{f.name} {f.stat().st_size:,} B" for f in sorted(folder.iterdir()))
+            print(
+                f"{name}: {stats.events:,} events, {stats.frames} frames, {stats.imu:,} IMU "
+                f"samples, simulated in {seconds:.0f} s; {sizes}"
+            )
+            made.append(name)
+    return made
+
+
+def check_demo(folder: Path) -> list[str]:
+    """What differs between the committed demo fixtures and their expected content, as the
+    driver records them; and whether their scene files changed since they were made."""
+    from evcap.sim.fixture import check_fixture
+    from evcap.sim.truth import read_truth
+
+    problems = []
+    for name, (scene_file, _) in DEMO.items():
+        fixture = folder / name
+        if not (fixture / "expected.json").exists():
+            problems.append(f"{fixture} is missing: make it with generate.py --demo")
+            continue
+        summary = json.loads((fixture / "expected.json").read_text())
+        if summary.get("serial") != DEMO_SERIAL:
+            problems.append(f"{fixture}: serial {summary.get('serial')!r}, not {DEMO_SERIAL!r}")
+        if summary.get("scene_sha256") != _sha256(SCENES / scene_file):
+            problems.append(
+                f"{fixture} was not made from the current sim/scenes/{scene_file}: "
+                "remake it with generate.py --demo"
+            )
+        problems += check_fixture(fixture)
+    truth = folder / "demo-scene" / "truth.h5"
+    if (folder / "demo-scene").exists():
+        try:
+            data, _, _, _ = read_truth(truth)
+            if data["test_radiance"].shape[1:3] != (H, W) or not len(data["test_T_world_cam"]):
+                problems.append(f"{truth}: no held-out views of a {W} x {H} camera")
+        except Exception as e:
+            problems.append(f"{truth}: {e}")
+    return problems
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -312,9 +419,25 @@ def main() -> int:
     parser.add_argument(
         "--check",
         action="store_true",
-        help="regenerate into a temporary folder and compare with this one",
+        help="regenerate into a temporary folder and compare with this one; record the demo's "
+        "fixtures through the driver and compare with their expected content",
+    )
+    parser.add_argument(
+        "--demo",
+        action="store_true",
+        help="simulate and write the demo's fixtures (demo-scene, demo-calibration): minutes",
+    )
+    parser.add_argument(
+        "--keep-sessions",
+        metavar="DIR",
+        type=Path,
+        help="--demo: keep the simulated sessions (with their ground truth) in DIR",
     )
     args = parser.parse_args()
+    if args.demo:
+        for name in generate_demo(HERE, args.keep_sessions):
+            print(f"wrote {HERE / name}")
+        return 0
     if not args.check:
         for name in generate(HERE):
             print(f"wrote {HERE / name}")
@@ -334,7 +457,10 @@ def main() -> int:
                         differ.append(str(mine))
         for path in differ:
             print(f"differs from the generator: {path}")
-        return 1 if differ else 0
+    demo = check_demo(HERE)
+    for line in demo:
+        print(line)
+    return 1 if differ or demo else 0
 
 
 if __name__ == "__main__":

@@ -37,6 +37,8 @@ MIN_MATCHES = 15  # verified matches for a pair to count (COLMAP's default)
 INIT_MIN_INLIERS = 100  # to start a model; COLMAP halves it twice before giving up
 FEW_FEATURES = 100  # fewer per frame on average: name too little texture as the cause
 MIN_FRAMES = 3  # fewer registered: no poses worth returning
+RELAXED_INIT_TRI_ANGLE = 4.0  # degrees (COLMAP's default 16), when half the frames fail
+RELAXED_ABS_POSE_INLIERS = 15  # 2D-3D matches to register a frame (COLMAP's default 30)
 SEED = 0  # RANSAC and mapping: the same frames give the same poses
 # a global bundle adjustment each time the model grows by 40 % (COLMAP: 10 %): on a 240-frame
 # orbit, mapping takes about a third less time with the same errors (the local adjustment
@@ -90,20 +92,22 @@ def run_sfm(
     # COLMAP logs every frame and step at INFO, and its failures are told by PosesError
     pycolmap.logging.minloglevel = max(int(level), int(pycolmap.logging.FATAL))
     try:
-        if workdir is None:
-            with tempfile.TemporaryDirectory(prefix="evcap-sfm-") as tmp:
-                recs, names = _colmap(
-                    pycolmap, images, model, params, Path(tmp), loop_every, report
-                )
-                stats = _match_stats(pycolmap, Path(tmp) / "database.db", n)
-        else:
-            workdir = Path(workdir)
-            recs, names = _colmap(pycolmap, images, model, params, workdir, loop_every, report)
-            stats = _match_stats(pycolmap, workdir / "database.db", n)
+        best, names, stats, count = _best_model(
+            pycolmap, images, model, params, workdir, loop_every, report
+        )
+        if best is None or best.num_reg_images() < n // 2:
+            # few frames registered: a scene with few features (an object against a plain
+            # background) starts and grows a model only with laxer thresholds
+            lax = _best_model(
+                pycolmap, images, model, params, workdir, loop_every, report, relaxed=True
+            )
+            if lax[0] is not None and (
+                best is None or lax[0].num_reg_images() > best.num_reg_images()
+            ):
+                best, names, stats, count = lax
     finally:
         pycolmap.logging.minloglevel = level
 
-    best = max(recs.values(), key=lambda r: r.num_reg_images(), default=None)
     registered = best.num_reg_images() if best is not None else 0
     if registered < MIN_FRAMES:
         raise PosesError(_failure(n, registered, stats))
@@ -127,7 +131,7 @@ def run_sfm(
         total=n,
         mean_reprojection_px=float(best.compute_mean_reprojection_error()),
         points=int(best.num_points3D()),
-        model_count=len(recs),
+        model_count=count,
         seconds=time.perf_counter() - started,
         unregistered_times=times_us[missing],
     )
@@ -200,7 +204,18 @@ def _threads() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _colmap(pycolmap, images, model, params, work, loop_every, report):
+def _best_model(pycolmap, images, model, params, workdir, loop_every, report, relaxed=False):
+    """(the model with the most frames or None, the image names, the database's statistics,
+    how many models)."""
+    with tempfile.TemporaryDirectory(prefix="evcap-sfm-") as tmp:
+        work = Path(workdir) if workdir is not None else Path(tmp)
+        recs, names = _colmap(pycolmap, images, model, params, work, loop_every, report, relaxed)
+        stats = _match_stats(pycolmap, work / "database.db", len(images))
+        best = max(recs.values(), key=lambda r: r.num_reg_images(), default=None)
+    return best, names, stats, len(recs)
+
+
+def _colmap(pycolmap, images, model, params, work, loop_every, report, relaxed=False):
     """Run COLMAP in ``work``: the reconstructions (a dict, maybe empty) and the image names."""
     import cv2
 
@@ -280,6 +295,9 @@ def _colmap(pycolmap, images, model, params, work, loop_every, report):
     options.mapper.abs_pose_refine_focal_length = False
     options.mapper.abs_pose_refine_extra_params = False
     options.mapper.init_min_num_inliers = INIT_MIN_INLIERS
+    if relaxed:
+        options.mapper.init_min_tri_angle = RELAXED_INIT_TRI_ANGLE
+        options.mapper.abs_pose_min_num_inliers = RELAXED_ABS_POSE_INLIERS
     options.mapper.num_threads = threads
     options.mapper.random_seed = SEED
     done = [0]

@@ -416,7 +416,7 @@ def _trajectory_section(s: Session) -> str:
         try:
             track = PoseTrack(t, T)
             inside = (t_true >= track.start) & (t_true <= track.end)
-            errors = pose_errors(track.at(t_true[inside]), T_true[inside])
+            errors = pose_errors(track.at(t_true[inside]), T_true[inside], by="poses")
         except InputError as e:
             parts.append(_missing(f"The poses cannot be compared with the truth: {e}"))
         else:

@@ -95,6 +95,10 @@ class SensorSpec:
     # a calibrated session (`evcap calibrate`) whose measured sensor this one copies: per-pixel
     # thresholds, hot pixels, noise rates, refractory period (effects listed here win)
     calibration: Path | None = None
+    # seed of the sensor's fixed imperfections (per-pixel thresholds, background-activity
+    # rates, hot pixels): scenes giving the same seed (and effects) simulate the same physical
+    # sensor. None: they are drawn from the scene's seed, as before this key existed
+    seed: int | None = None
 
 
 @dataclass(frozen=True)
@@ -323,6 +327,7 @@ def load_scene(path: str | os.PathLike) -> Scene:
         dark_level=_positive(sensor_t.where, "dark_level", sensor_t.get("dark_level", float, 1e-3)),
         effects=effects,
         calibration=_resolve(base, cal, f"{sensor_t.where}: calibration") if cal else None,
+        seed=sensor_t.get("seed", int),
     )
     sensor_t.done()
 

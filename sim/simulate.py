@@ -88,11 +88,16 @@ class Simulator:
             s = scene.sensor
             self.channels = ChannelMap(self.camera.width, self.camera.height, s.color_filter)
             n = self.camera.width * self.camera.height
+            # The sensor's fixed imperfections come from [sensor] seed when the scene gives one
+            # (the same physical sensor in every scene that gives it), else from the scene's
+            # random numbers; its noise over time always comes from the scene's.
+            made = self.rng if s.seed is None else np.random.default_rng(s.seed)
             if s.calibration is None:
-                self.pixels = PixelArray(n, s.threshold_on, s.threshold_off, s.effects, self.rng)
+                self.pixels = PixelArray(n, s.threshold_on, s.threshold_off, s.effects, made)
             else:
                 on, off, hot, effects = measured_sensor(s.calibration, s.effects, n)
-                self.pixels = PixelArray(n, on, off, effects, self.rng, hot_pixels=hot)
+                self.pixels = PixelArray(n, on, off, effects, made, hot_pixels=hot)
+            self.pixels.rng = self.rng
             self.effects = self.pixels.effects
             # points of the scene, to bound the image motion
             v = self.renderer.mesh.vertices
