@@ -1,0 +1,69 @@
+"""`evcap demo` on the bundled captures, the smallest preset: interrupted, then resumed."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from evcap import demo
+from evcap.errors import InputError, OutputExistsError
+
+
+def test_demo_runs_resumes_and_writes_the_report(tmp_path, monkeypatch):
+    out = tmp_path / "demo"
+    lines: list[str] = []
+    real = demo._reconstruct
+
+    def stopped_in_stage_two(ctx, stage):
+        if stage == "material":
+            raise KeyboardInterrupt
+        return real(ctx, stage)
+
+    monkeypatch.setattr(demo, "_reconstruct", stopped_in_stage_two)
+    with pytest.raises(demo.DemoInterrupted, match="stage II"):
+        demo.run_demo(out, preset="tiny", say=lines.append)
+    state = json.loads((out / "demo.json").read_text())
+    steps = [s.name for s in demo.demo_steps(demo.DemoContext(out, out, "tiny", None, print))]
+    assert list(state["done"]) == steps[:6]
+
+    monkeypatch.setattr(demo, "_reconstruct", real)
+    lines.clear()
+    report = demo.run_demo(out, preset="tiny", say=lines.append)
+    assert sum("done before" in line for line in lines) == 6
+    assert report == out / "report.html" and report.stat().st_size > 100_000
+    state = json.loads((out / "demo.json").read_text())
+    assert list(state["done"]) == steps
+    assert all(state["done"][s]["summary"] and state["done"][s]["seconds"] > 0 for s in steps)
+    metrics = json.loads((out / "reconstruction" / "metrics.json").read_text())
+    assert metrics["views"] == "held-out test views" and metrics["history"]
+    assert metrics["pbr_render_psnr_cc"] > 15  # the pipeline works, even on estimated poses
+    page = report.read_text()
+    assert "http://" not in page and "https://" not in page
+
+    lines.clear()
+    demo.run_demo(out, preset="tiny", say=lines.append)
+    assert sum("done before" in line for line in lines) == len(steps)
+
+
+def test_demo_refuses_what_it_cannot_use(tmp_path):
+    with pytest.raises(InputError, match="missing"):
+        demo.run_demo(tmp_path / "a", fixtures=tmp_path)
+    with pytest.raises(InputError, match="preset"):
+        demo.run_demo(tmp_path / "a", preset="paper")
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "thesis.tex").write_text("keep me")
+    with pytest.raises(OutputExistsError, match="not empty"):
+        demo.run_demo(busy)
+    with pytest.raises(OutputExistsError, match="holds no demo"):
+        demo.run_demo(busy, force=True)
+    assert (busy / "thesis.tex").read_text() == "keep me"
+    made = tmp_path / "made"
+    made.mkdir()
+    (made / "demo.json").write_text(json.dumps({"preset": "fast", "done": {}}))
+    with pytest.raises(InputError, match="--preset fast"):
+        demo.run_demo(made, preset="tiny")
+    (made / "demo.json").write_text("{")
+    with pytest.raises(InputError, match="damaged"):
+        demo.run_demo(made)
