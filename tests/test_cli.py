@@ -19,6 +19,8 @@ def test_help_lists_every_command_with_one_line():
         "calibrate",
         "poses",
         "reconstruct",
+        "report",
+        "demo",
     ]
     assert all(len(line.split()) > 2 for line in lines)
 
