@@ -43,7 +43,6 @@ class DemoContext:
     fixtures: Path
     preset: str
     progress: Callable[[str], object]  # a description -> a context manager giving update()
-    say: Callable[[str], None]
 
     @property
     def scene(self) -> Path:
@@ -81,7 +80,7 @@ def run_demo(
                 "(hw-fixtures/); run the demo from a clone, or name the folder with --fixtures"
             )
     state = _read_state(out, preset, force)
-    ctx = DemoContext(out, fixtures, preset, progress or progress_bar, say)
+    ctx = DemoContext(out, fixtures, preset, progress or progress_bar)
     steps = demo_steps(ctx)
     started = time.perf_counter()
     redo = False
@@ -91,9 +90,10 @@ def run_demo(
         if done and not redo and (out / step.output).exists():
             say(f"{head}: done before ({done['seconds']:.1f} s): {done['summary']}")
             continue
-        redo = True  # what follows a step that runs again is made again too
-        for later in steps[i - 1 :]:
-            state["done"].pop(later.name, None)
+        if not redo:  # what follows a step that runs again is made again too
+            redo = True
+            for later in steps[i - 1 :]:
+                state["done"].pop(later.name, None)
         say(f"{head} ...")
         t0 = time.perf_counter()
         try:
@@ -212,7 +212,7 @@ def _register(ctx: DemoContext) -> str:
     from evcap.session import Session, write_group
     from evcap.sim.truth import copy_truth
 
-    copy_truth(ctx.fixtures / SCENE / "truth.h5", ctx.scene)
+    copy_truth(ctx.fixtures / SCENE / "truth.h5", ctx.scene, replace=True)
     with Session.open(ctx.scene) as s:
         poses = s.group("poses")
         t, T, attrs = poses["t"][:], poses["T_world_cam"][:], dict(poses.attrs)
@@ -275,23 +275,11 @@ def _report(ctx: DemoContext) -> str:
 def write_relight_environment(path: Path, height: int = 64) -> None:
     """A latitude-longitude sky for the relit views: a low warm sun over a dim blue sky
     (z up), unlike the scene's own light."""
-    import cv2
+    from evcap.recon.export import write_image
 
-    v = (np.arange(height) + 0.5) / height
-    u = (np.arange(2 * height) + 0.5) / (2 * height)
-    elevation = (0.5 - v)[:, None] * np.pi
-    azimuth = (u * 2 * np.pi)[None, :]
-    d = np.stack(
-        [
-            np.cos(elevation) * np.cos(azimuth),
-            np.cos(elevation) * np.sin(azimuth),
-            np.sin(elevation) + 0 * azimuth,
-        ],
-        -1,
-    )
-    sun = np.array([np.cos(0.3), 0.0, np.sin(0.3)])
-    glow = np.clip(d @ sun, 0, 1) ** 64
+    elevation = (0.5 - (np.arange(height) + 0.5) / height)[:, None] * np.pi
+    azimuth = ((np.arange(2 * height) + 0.5) / height)[None, :] * np.pi
+    to_sun = np.cos(elevation) * np.cos(azimuth) * np.cos(0.3) + np.sin(elevation) * np.sin(0.3)
+    glow = np.clip(to_sun, 0, 1) ** 64
     sky = np.where(elevation[..., None] > 0, [0.25, 0.35, 0.6], [0.15, 0.12, 0.1])
-    linear = np.clip(sky + glow[..., None] * [1.0, 0.7, 0.4], 0, 1)
-    srgb = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
-    cv2.imwrite(str(path), (srgb[..., ::-1] * 65535).round().astype(np.uint16))
+    write_image(np.clip(sky + glow[..., None] * [1.0, 0.7, 0.4], 0, 1), path)

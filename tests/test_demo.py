@@ -24,7 +24,7 @@ def test_demo_runs_resumes_and_writes_the_report(tmp_path, monkeypatch):
     with pytest.raises(demo.DemoInterrupted, match="stage II"):
         demo.run_demo(out, preset="tiny", say=lines.append)
     state = json.loads((out / "demo.json").read_text())
-    steps = [s.name for s in demo.demo_steps(demo.DemoContext(out, out, "tiny", None, print))]
+    steps = [s.name for s in demo.demo_steps(demo.DemoContext(out, out, "tiny", None))]
     assert list(state["done"]) == steps[:6]
 
     monkeypatch.setattr(demo, "_reconstruct", real)
