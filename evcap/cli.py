@@ -342,6 +342,7 @@ def _cmd_poses(args: argparse.Namespace) -> int:
             rate_hz=args.rate,
             export_frames=args.export_frames,
             gravity=not args.no_gravity,
+            aps={"auto": None, "on": True, "off": False}[args.aps],
             say=print,
             progress=update,
         )
@@ -554,6 +555,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--rate", type=float, metavar="HZ", help="frames per second (default: from the event rate)"
     )
     p.add_argument("--export-frames", metavar="DIR", help="also write the frames as PNG files")
+    p.add_argument(
+        "--aps",
+        default="auto",
+        choices=["auto", "on", "off"],
+        help="whether the filter's frames lean on the APS frames (a complementary filter); auto "
+        "(default): when the camera turns at most 2 deg between two of them (by the IMU; "
+        "without it, when they come at 20 Hz or more)",
+    )
     p.add_argument(
         "--no-gravity",
         action="store_true",

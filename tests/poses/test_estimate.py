@@ -48,3 +48,35 @@ def test_a_session_without_intrinsics_is_refused(board_session, tmp_path):
 def test_bad_rate_is_refused(board_session):
     with pytest.raises(InputError, match="--rate"):
         estimate_poses(board_session, rate_hz=-3)
+
+
+def _frames_and_imu(aps_hz: float, turn_deg_per_s: float, imu: bool = True):
+    from evcap.streams import Frames, ImuSamples
+
+    t = np.arange(0, 1_000_000, int(1e6 / aps_hz), dtype=np.int64)
+    frames = Frames(np.zeros((len(t), 4, 4), np.uint16), t, np.full(len(t), 4000))
+    ti = np.arange(0, 1_000_001, 1000, dtype=np.int64) if imu else np.zeros(0, np.int64)
+    gyro = np.zeros((len(ti), 3), np.float32)
+    gyro[:, 1] = np.radians(turn_deg_per_s)
+    zeros = np.zeros((len(ti), 3), np.float32)
+    return frames, ImuSamples(ti, zeros, gyro, np.zeros(len(ti), np.float32))
+
+
+@pytest.mark.parametrize(
+    ("aps_hz", "turn_deg_per_s", "imu", "usable"),
+    [
+        (25, 30.0, True, True),  # 1.2 deg between frames: the hand-held sweep
+        (10, 60.0, True, False),  # 6 deg: the demo's orbit, the filter would ghost
+        (50, 60.0, True, True),
+        (25, 0.0, False, True),  # without the IMU, by the rate alone
+        (10, 0.0, False, False),
+    ],
+)
+def test_aps_frames_are_used_when_the_motion_between_them_is_small(
+    aps_hz, turn_deg_per_s, imu, usable
+):
+    from evcap.poses.estimate import aps_frames_usable
+
+    frames, samples = _frames_and_imu(aps_hz, turn_deg_per_s, imu)
+    ok, why = aps_frames_usable(frames, samples)
+    assert ok is usable and why
