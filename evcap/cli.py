@@ -270,9 +270,13 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
             ablate=tuple(ABLATION_FLAGS[w] for w in sorted(without) if w in ABLATION_FLAGS),
             relight=args.relight,
             overwrite=args.force,
+            resume=not args.force,
+            say=print,
             progress=update,
         )
-    stopped = " (interrupted: what was learnt so far)" if result.get("interrupted") else ""
+    stopped = ""
+    if result.get("interrupted"):
+        stopped = " (interrupted: what was learnt so far; the same command goes on from there)"
     if args.stage != "material":
         print(
             f"{args.output}: {result['gaussians']:,} Gaussians after {result['iterations']:,} "
@@ -578,7 +582,9 @@ def build_parser() -> argparse.ArgumentParser:
         "used), then their material and the light, and write OUT/gaussians.ply, OUT/renders/ "
         "(radiance, depth, normals; material/: base color, roughness, shading normals), "
         "OUT/environment.png, OUT/checkpoint/, OUT/config.toml and OUT/metrics.json (with the "
-        "ground truth of a simulated session).",
+        "ground truth of a simulated session). Ctrl-C stops at the end of the current step and "
+        "writes what was learnt so far; the same command then goes on from that step (the "
+        "training's state is also saved every 2 minutes).",
     )
     p.add_argument("session", help="the session file (.h5), with /calibration and /poses")
     p.add_argument("-o", "--output", required=True, metavar="OUT", help="the folder to write")
@@ -625,7 +631,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="ENV",
         help="also render the views under this environment (latitude-longitude image, z up)",
     )
-    p.add_argument("-f", "--force", action="store_true", help="overwrite a reconstruction in OUT")
+    p.add_argument(
+        "-f",
+        "--force",
+        action="store_true",
+        help="start over: replace the reconstruction in OUT, finished or interrupted",
+    )
     p.set_defaults(run=_cmd_reconstruct)
 
     p = sub.add_parser(

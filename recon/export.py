@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from evcap.errors import InputError
-from evcap.recon.gaussians import PARAMS, Background, Gaussians
+from evcap.recon.gaussians import Background, Gaussians
 from evcap.recon.material import MaterialField
 from evcap.recon.metrics import srgb
 from evcap.recon.radiance import RadianceField
@@ -166,9 +166,8 @@ def load_checkpoint(path: Path, device: str = "cpu", backend: str = "torch"):
         raise InputError(f"{path}: no stage-I checkpoint; run `evcap reconstruct --stage radiance`")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
-        gaussians = Gaussians(*(state["gaussians"][k] for k in PARAMS))
-        background = Background(state["background"].shape[-1])
-        background.faces.data.copy_(state["background"])
+        gaussians = Gaussians.from_state(state["gaussians"])
+        background = Background.from_faces(state["background"])
     except (KeyError, RuntimeError, ValueError) as e:
         raise InputError(f"{path}: not a readable stage-I checkpoint ({e})") from e
     return RadianceField(gaussians, background, backend).to(device), state["config"]

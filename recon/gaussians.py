@@ -59,6 +59,11 @@ class Gaussians(torch.nn.Module):
             torch.zeros(n, k - 1, 3),
         )
 
+    @classmethod
+    def from_state(cls, state: dict[str, torch.Tensor]) -> Gaussians:
+        """Gaussians from a state_dict (a checkpoint's)."""
+        return cls(*(state[k].clone() for k in PARAMS))
+
     def __len__(self) -> int:
         return len(self.means)
 
@@ -107,6 +112,12 @@ class Background(torch.nn.Module):
     def __init__(self, size: int) -> None:
         super().__init__()
         self.faces = torch.nn.Parameter(torch.full((6, 3, size, size), START_VALUE))
+
+    @classmethod
+    def from_faces(cls, faces: torch.Tensor) -> Background:
+        background = cls(faces.shape[-1])
+        background.faces.data.copy_(faces)
+        return background
 
     def forward(self, dirs: torch.Tensor) -> torch.Tensor:
         """Radiance [..., 3] in world directions [..., 3]."""

@@ -25,6 +25,12 @@ from evcap.recon.gaussians import Background, Gaussians, make_optimizer, means_l
 from evcap.recon.losses import anchor_loss, event_loss, log_radiance, normal_loss
 from evcap.recon.optics import CHANNEL_WEIGHTS, RenderGrid, SensorOptics, render_grid
 from evcap.recon.rasterize import Camera, Render, rasterize
+from evcap.recon.resume import (
+    PeriodicSave,
+    random_states,
+    restore_random_states,
+    stop_after_step,
+)
 from evcap.recon.volume import SceneVolume, sample_points, scene_volume
 from evcap.session import Session
 
@@ -156,60 +162,104 @@ def train_radiance(
     clock: Callable[[], float] = time.perf_counter,
     evaluate: Callable[[RadianceField], dict] | None = None,
     evaluations: int = 6,
+    resume: dict | None = None,
+    save_state: Callable[[dict], None] | None = None,
+    save_every_s: float = 120.0,
 ) -> Fit:
-    """Fit stage I; Ctrl-C ends it early with what was learnt so far. ``evaluate``, when
-    given, is called at ``evaluations`` evenly spaced steps (its time not counted in the
-    training's seconds) and what it returns goes into the fit's history with step and
-    seconds: the accuracy-versus-time curve."""
+    """Fit stage I; Ctrl-C ends it at the end of the step with what was learnt so far.
+    ``evaluate``, when given, is called at ``evaluations`` evenly spaced steps (its time not
+    counted in the training's seconds) and what it returns goes into the fit's history with
+    step and seconds: the accuracy-versus-time curve. ``save_state`` is given the training's
+    state every ``save_every_s`` seconds and when it is interrupted; ``resume`` (such a state)
+    goes on from its step as if it had never stopped."""
     torch.manual_seed(seed)
-    field = new_field(data, config, seed, device, backend)
+    if resume is None:
+        field = new_field(data, config, seed, device, backend)
+    else:
+        gaussians = Gaussians.from_state(resume["gaussians"])
+        background = Background.from_faces(resume["background"])
+        field = RadianceField(gaussians, background, backend).to(device)
     extent = data.volume.radius
     optimizer = make_optimizer(field.gaussians, field.background, config, extent)
     densifier = Densifier(config, extent)
     rng = np.random.default_rng(seed + 1)
     log: list[StepLog] = []
-    started = clock()
-    degree_every = max(config.iterations // 30, 1)
-    interrupted = False
     history: list[dict] = []
+    step, elapsed = 0, 0.0
+    if resume is not None:
+        optimizer.load_state_dict(resume["optimizer"])
+        densifier.grad_sum, densifier.count = resume["grad_sum"], resume["count"]
+        restore_random_states(rng, resume["random"])
+        log = [StepLog(**x) for x in resume["log"]]
+        history = list(resume["history"])
+        step, elapsed = int(resume["step"]), float(resume["seconds"])
+    started = clock() - elapsed
+    degree_every = max(config.iterations // 30, 1)
+    interrupted, whole = False, True
     evaluate_at = set(np.linspace(0, config.iterations, evaluations + 1)[1:].round().astype(int))
     paused = 0.0
-    try:
-        for step in range(1, config.iterations + 1):
-            sh_degree = min(config.sh_degree, (step - 1) // degree_every)
-            frames = draw_frames(rng, len(data.windows), config)
-            renders, total, terms = _losses(field, data, config, frames, sh_degree, step)
-            if not torch.isfinite(total):
-                raise NumericalError(f"stage I: the loss became {float(total)} at step {step}")
-            total.backward()
-            loss = total.item()
-            for r in renders:
-                densifier.observe(r, data.grid.width, data.grid.height)
-            for group in optimizer.param_groups:
-                if group["name"] == "means":
-                    group["lr"] = means_lr(config, extent, step)
-            optimizer.step()
-            optimizer.zero_grad(set_to_none=True)
-            with torch.no_grad():
-                q = field.gaussians.quats
-                q.data = F.normalize(q.data, dim=1)  # any length is a rotation; keep off zero
-            densify, reset = densifier.due(step)
-            if densify:
-                densifier.densify(field.gaussians, optimizer)
-            if reset:
-                densifier.reset_opacities(field.gaussians, optimizer)
-            n = len(field.gaussians)
-            if step % 10 == 0 or step == config.iterations:
-                seconds = clock() - started - paused
-                log.append(StepLog(step, loss, **terms, gaussians=n, seconds=seconds))
-            if evaluate is not None and step in evaluate_at:
-                seconds, before = clock() - started - paused, clock()
-                history.append({"step": step, "seconds": seconds, **evaluate(field)})
-                paused += clock() - before
-            if progress:
-                progress(step, config.iterations, f"loss {loss:.4f}  {n:,} Gaussians")
-    except KeyboardInterrupt:
-        interrupted = True  # Ctrl-C: keep what was learnt so far
+
+    def state() -> dict:
+        return {
+            "step": step,
+            "gaussians": field.gaussians.state_dict(),
+            "background": field.background.faces.detach(),
+            "optimizer": optimizer.state_dict(),
+            "grad_sum": densifier.grad_sum,
+            "count": densifier.count,
+            "random": random_states(rng),
+            "log": [dataclasses.asdict(x) for x in log],
+            "history": history,
+            "seconds": clock() - started - paused,
+        }
+
+    periodic = PeriodicSave(save_state, save_every_s, clock)
+    with stop_after_step() as stop_requested:
+        try:
+            while step < config.iterations:
+                if stop_requested():
+                    interrupted = True
+                    break
+                whole = False
+                step += 1
+                sh_degree = min(config.sh_degree, (step - 1) // degree_every)
+                frames = draw_frames(rng, len(data.windows), config)
+                renders, total, terms = _losses(field, data, config, frames, sh_degree, step)
+                if not torch.isfinite(total):
+                    raise NumericalError(f"stage I: the loss became {float(total)} at step {step}")
+                total.backward()
+                loss = total.item()
+                for r in renders:
+                    densifier.observe(r, data.grid.width, data.grid.height)
+                for group in optimizer.param_groups:
+                    if group["name"] == "means":
+                        group["lr"] = means_lr(config, extent, step)
+                optimizer.step()
+                optimizer.zero_grad(set_to_none=True)
+                with torch.no_grad():
+                    q = field.gaussians.quats
+                    q.data = F.normalize(q.data, dim=1)  # any length is a rotation; keep off zero
+                densify, reset = densifier.due(step)
+                if densify:
+                    densifier.densify(field.gaussians, optimizer)
+                if reset:
+                    densifier.reset_opacities(field.gaussians, optimizer)
+                n = len(field.gaussians)
+                if step % 10 == 0 or step == config.iterations:
+                    seconds = clock() - started - paused
+                    log.append(StepLog(step, loss, **terms, gaussians=n, seconds=seconds))
+                if evaluate is not None and step in evaluate_at:
+                    seconds, before = clock() - started - paused, clock()
+                    history.append({"step": step, "seconds": seconds, **evaluate(field)})
+                    paused += clock() - before
+                whole = True
+                paused += periodic(state)
+                if progress:
+                    progress(step, config.iterations, f"loss {loss:.4f}  {n:,} Gaussians")
+        except KeyboardInterrupt:
+            interrupted = True  # keep what was learnt so far
+    if interrupted and whole and save_state is not None:
+        save_state(state())  # a step cut in two is not saved: the last whole one stays
     return Fit(field, log, interrupted, history)
 
 

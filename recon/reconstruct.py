@@ -18,6 +18,7 @@ import torch
 
 from evcap.errors import InputError
 from evcap.recon import config as cfg
+from evcap.recon import resume as resume_
 from evcap.recon.evaluate import material_metrics, metrics, render_views, test_views
 from evcap.recon.export import (
     load_checkpoint,
@@ -83,19 +84,18 @@ def reconstruct(
     ablate: tuple[str, ...] = (),
     relight: str | Path | None = None,
     overwrite: bool = False,
+    resume: bool = True,
+    say: Callable[[str], None] = lambda line: None,
     progress: Callable[[int, int, str], None] | None = None,
 ) -> dict:
-    """Run the reconstruction; returns what went into OUT/metrics.json."""
+    """Run the reconstruction; returns what went into OUT/metrics.json. With ``resume``, a
+    stage interrupted in OUT with the same session and settings goes on from where it
+    stopped; ``overwrite`` lets a finished (or differently started) one be replaced."""
     if stage not in STAGES:
         raise InputError(f"unknown stage {stage!r}; expected one of {', '.join(STAGES)}")
     if set(ablate) - set(ABLATIONS):
         raise InputError(f"unknown ablation(s) {sorted(set(ablate) - set(ABLATIONS))}")
     out = Path(out)
-    done = out / "gaussians.ply" if stage != "material" else out / "checkpoint" / "material.pt"
-    if done.exists() and not overwrite:
-        raise InputError(
-            f"{out} already holds a reconstruction; choose another folder or pass --force"
-        )
     mconfig = cfg.material_preset(
         preset, iterations=material_iterations, visibility=visibility, indirect=indirect
     )
@@ -105,15 +105,24 @@ def reconstruct(
     if stage == "material":
         field, settings = load_checkpoint(out / "checkpoint" / "radiance.pt", device, backend)
         config = cfg.RadianceConfig(**settings)
-        previous = out / "metrics.json"
-        result = json.loads(previous.read_text()) if previous.exists() else {}
     else:
         config = cfg.preset(
             preset, resolution=resolution, iterations=iterations, zero_events=zero_events
         )
-        result = {}
     started = time.perf_counter()
     with Session.open(session_path) as session:
+        session_id = resume_.session_fingerprint(session)
+        settings = {
+            "radiance": {"config": cfg.to_dict(config), "seed": seed, "session": session_id},
+        }
+        settings["material"] = {
+            **settings["radiance"],
+            "material": cfg.to_dict(mconfig),
+            "ablate": sorted(ablate),
+        }
+        states = _saved_states(out, stage, settings, resume, overwrite)
+        if stage == "all" and states["radiance"] is None and states["material"] is not None:
+            field, _ = load_checkpoint(out / "checkpoint" / "radiance.pt", device, backend)
         data = load_training_data(session, config, device)
         poses, truth = test_views(session)
         if not len(poses):
@@ -122,15 +131,39 @@ def reconstruct(
             )
             poses = data.track.at(times.astype(np.int64))
         out.mkdir(parents=True, exist_ok=True)
-        if stage != "material":
+        # stage I is not run again for stage II alone, nor to go on with an interrupted stage II
+        skip = stage == "material" or states["material"] is not None
+        previous = out / "metrics.json"
+        before = json.loads(previous.read_text()) if previous.exists() and resume else {}
+        result = dict(before) if skip else {}
+        stopped = False
+        if not skip:
+            if states["radiance"] is not None:
+                say(_going_on("stage I", states["radiance"], config.iterations))
             field, figures = _stage_radiance(
-                data, config, poses, truth, out, seed, device, backend, progress
+                data,
+                config,
+                poses,
+                truth,
+                out,
+                seed,
+                device,
+                backend,
+                progress,
+                states["radiance"],
+                settings["radiance"],
             )
             result.update(figures)
             result["seconds"] = time.perf_counter() - started
+            if states["radiance"] is not None:  # and the time it took before
+                result["seconds"] += before.get("seconds", 0.0)
             result.update(preset=preset, seed=seed, zero_events=config.zero_events)
-        if stage != "radiance":
+            stopped = figures["interrupted"]
+        if stage != "radiance" and not stopped:
+            if states["material"] is not None:
+                say(_going_on("stage II", states["material"], mconfig.iterations))
             started = time.perf_counter()
+            path = resume_.state_path(out, "material")
             fit = train_material(
                 field,
                 data,
@@ -141,15 +174,21 @@ def reconstruct(
                 device=device,
                 progress=progress,
                 ablate=frozenset(ablate),
+                resume=states["material"],
+                save_state=lambda state: resume_.save_state(path, state, settings["material"]),
             )
-    if stage != "radiance":
-        if "normal_mae_deg" in result:
+    if stage != "radiance" and not stopped:
+        if "normal_mae_deg" in result and "radiance_normal_mae_deg" not in result:
             result["radiance_normal_mae_deg"] = result["normal_mae_deg"]
         result.update(
             _material_outputs(fit, poses, truth, data.optics, environment, out, device, ablate)
         )
         result["material_seconds"] = time.perf_counter() - started
-        result["interrupted"] = bool(result.get("interrupted")) or fit.interrupted
+        if states["material"] is not None:
+            result["material_seconds"] += before.get("material_seconds", 0.0)
+        result["interrupted"] = fit.interrupted
+        if not fit.interrupted:
+            resume_.state_path(out, "material").unlink(missing_ok=True)
     result["views"] = "held-out test views" if truth else "views along the camera path"
     sections = {
         "reconstruct": {
@@ -171,13 +210,54 @@ def reconstruct(
     return result
 
 
-def _stage_radiance(data, config, poses, truth, out: Path, seed, device, backend, progress):
+def _saved_states(
+    out: Path, stage: str, settings: dict, resume: bool, overwrite: bool
+) -> dict[str, dict | None]:
+    """The training states to go on from ({"radiance": ..., "material": ...}, None where a
+    stage starts afresh); refuses to replace what OUT holds unless ``overwrite``."""
+    states: dict[str, dict | None] = {"radiance": None, "material": None}
+    names = {"radiance": ("radiance",), "material": ("material",)}.get(stage, tuple(states))
+    saved = [n for n in names if resume_.state_path(out, n).exists()]
+    for name in saved if resume else ():
+        states[name] = resume_.load_state(resume_.state_path(out, name), settings[name])
+        if states[name] is None and not overwrite:
+            raise InputError(
+                f"{out} holds a reconstruction interrupted in stage "
+                f"{'I' if name == 'radiance' else 'II'} with another session or other settings: "
+                "run the command it was started with to go on, or pass --force to start over"
+            )
+    if states["radiance"] is not None:
+        states["material"] = None  # stage II starts afresh after it
+    if not any(v is not None for v in states.values()):
+        done = out / "gaussians.ply" if stage != "material" else out / "checkpoint" / "material.pt"
+        if done.exists() and not overwrite:
+            raise InputError(
+                f"{out} already holds a reconstruction; choose another folder or pass --force"
+            )
+    # a stage that runs afresh makes what was saved of it (and, for stage I, of stage II) old
+    for name in ("material",) if stage == "material" else tuple(states):
+        if states[name] is None:
+            resume_.state_path(out, name).unlink(missing_ok=True)
+    return states
+
+
+def _going_on(name: str, state: dict, iterations: int) -> str:
+    return (
+        f"{name}: going on from step {state['step']:,} of {iterations:,} (saved when it was "
+        f"interrupted, {state['seconds']:.0f} s in)"
+    )
+
+
+def _stage_radiance(
+    data, config, poses, truth, out: Path, seed, device, backend, progress, state, settings
+):
     """Stage I and its outputs; (the field, its figures)."""
 
     def evaluate(field) -> dict:
         views = render_views(field, poses[:HISTORY_VIEWS], data.optics, device)
         return image_metrics(views["radiance"], truth["radiance"][:HISTORY_VIEWS], "render")
 
+    path = resume_.state_path(out, "radiance")
     fit = train_radiance(
         data,
         config,
@@ -186,6 +266,8 @@ def _stage_radiance(data, config, poses, truth, out: Path, seed, device, backend
         backend=backend,
         progress=progress,
         evaluate=evaluate if "radiance" in truth else None,
+        resume=state,
+        save_state=lambda s: resume_.save_state(path, s, settings),
     )
     field, log = fit.field, fit.log
     views = render_views(field, poses, data.optics, device)
@@ -209,6 +291,8 @@ def _stage_radiance(data, config, poses, truth, out: Path, seed, device, backend
         {"stage": "radiance", "log": [vars(x) for x in log]},
         out / "checkpoint" / "radiance.pt",
     )
+    if not fit.interrupted:
+        path.unlink(missing_ok=True)
     return field, result
 
 

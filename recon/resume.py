@@ -1,0 +1,115 @@
+"""Going on with an interrupted training: Ctrl-C stops a stage at the end of its current step,
+and what it needs to go on (parameters, the optimiser's moments, the random generators' states,
+its logs) is saved beside the reconstruction's checkpoint, with the settings and the session it
+was started with; the same command then continues from that step."""
+
+from __future__ import annotations
+
+import hashlib
+import signal
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from evcap.errors import InputError
+from evcap.session import Session
+
+
+def state_path(out: Path, stage: str) -> Path:
+    """Where an unfinished stage's training state lies ("radiance" or "material")."""
+    return out / "checkpoint" / f"{stage}-state.pt"
+
+
+@contextmanager
+def stop_after_step() -> Iterator[Callable[[], bool]]:
+    """Yield ``requested()``: true once Ctrl-C was pressed, for a training loop to stop at the
+    end of its step, so that what it saves is whole. A second Ctrl-C interrupts at once.
+    Outside the main thread (no signal handlers there) Ctrl-C interrupts as usual."""
+    if threading.current_thread() is not threading.main_thread():
+        yield lambda: False
+        return
+    asked = threading.Event()
+
+    def handler(signum, frame) -> None:
+        if asked.is_set():
+            raise KeyboardInterrupt
+        asked.set()
+
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        yield asked.is_set
+    finally:
+        signal.signal(signal.SIGINT, previous if previous is not None else signal.SIG_DFL)
+
+
+def session_fingerprint(session: Session) -> str:
+    """What a training depends on in the session: its events' count and span, the poses and
+    the intrinsics (a digest)."""
+    digest = hashlib.sha1()
+    digest.update(repr((session.n_events, session.time_range())).encode())
+    for group, names in (("poses", ("t", "T_world_cam")), ("calibration", ("K",))):
+        if group in session.groups:
+            g = session.group(group)
+            for name in names:
+                if name in g:
+                    digest.update(np.ascontiguousarray(g[name][()]).tobytes())
+    return digest.hexdigest()
+
+
+def save_state(path: Path, state: dict, settings: dict) -> None:
+    """Write a training state; a crash mid-write leaves the previous one."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    torch.save({**state, "settings": settings}, tmp)
+    tmp.replace(path)
+
+
+def load_state(path: Path, settings: dict) -> dict | None:
+    """The training state saved at ``path`` when it was started with these ``settings``;
+    None when there is none, or it was started with others."""
+    if not path.exists():
+        return None
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except (RuntimeError, ValueError, EOFError, OSError) as e:
+        raise InputError(
+            f"{path}: the saved training state cannot be read ({e}); pass --force to start over"
+        ) from e
+    return state if state.get("settings") == settings else None
+
+
+def random_states(rng: np.random.Generator) -> dict:
+    states = {"numpy": rng.bit_generator.state, "torch": torch.get_rng_state()}
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        states["cuda"] = torch.cuda.get_rng_state()
+    return states
+
+
+def restore_random_states(rng: np.random.Generator, states: dict) -> None:
+    rng.bit_generator.state = states["numpy"]
+    torch.set_rng_state(states["torch"])
+    if "cuda" in states and torch.cuda.is_available():
+        torch.cuda.set_rng_state(states["cuda"])
+
+
+class PeriodicSave:
+    """``save(state())`` at most every ``every_s`` seconds of ``clock``; a call returns the
+    seconds the saving took (not training time)."""
+
+    def __init__(
+        self, save: Callable[[dict], None] | None, every_s: float, clock: Callable[[], float]
+    ) -> None:
+        self.save, self.every_s, self.clock = save, every_s, clock
+        self.last = clock()
+
+    def __call__(self, state: Callable[[], dict]) -> float:
+        if self.save is None or self.clock() - self.last < self.every_s:
+            return 0.0
+        before = self.clock()
+        self.save(state())
+        self.last = self.clock()
+        return self.last - before

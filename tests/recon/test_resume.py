@@ -1,0 +1,127 @@
+"""An interrupted reconstruction goes on from the step it stopped at, as if it never stopped."""
+
+import json
+import os
+import signal
+
+import pytest
+import torch
+
+from evcap.errors import InputError
+from evcap.recon.reconstruct import reconstruct
+from evcap.recon.resume import state_path, stop_after_step
+from evcap.sim.scene import load_scene
+from evcap.sim.simulate import simulate
+
+ORBIT = """kind = "orbit"
+radius = 2.2
+height = 0.8
+height_swing = 0.4
+swings = 1
+degrees = 60.0
+duration_s = 0.5"""
+
+
+@pytest.fixture(scope="module")
+def session(tiny_scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("session") / "s.h5"
+    simulate(load_scene(tiny_scene(trajectory=ORBIT)), out)
+    return out
+
+
+def interrupt_at(step: int, stage: str):
+    """A progress callback that presses Ctrl-C once ``stage``'s step ``step`` is done."""
+
+    def progress(done: int, total: int, status: str = "") -> None:
+        if done == step and status.startswith("material") == (stage == "material"):
+            raise KeyboardInterrupt
+
+    return progress
+
+
+def gaussians(out):
+    return torch.load(out / "checkpoint" / "radiance.pt", weights_only=True)["gaussians"]
+
+
+def material(out):
+    return torch.load(out / "checkpoint" / "material.pt", weights_only=True)["material"]
+
+
+RUN = {"preset": "tiny", "material_iterations": 12}
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(session, tmp_path_factory):
+    out = tmp_path_factory.mktemp("whole")
+    return out, reconstruct(session, out, **RUN)
+
+
+def test_stage_one_goes_on_from_where_it_stopped(session, uninterrupted, tmp_path):
+    whole, expected = uninterrupted
+    # step 40: before the densification at step 50, which then uses the gradients seen before
+    first = reconstruct(session, tmp_path, **RUN, progress=interrupt_at(40, "radiance"))
+    assert first["interrupted"] and first["iterations"] == 40
+    assert state_path(tmp_path, "radiance").exists()
+    assert "material_iterations" not in first  # stage II did not start
+    said = []
+    result = reconstruct(session, tmp_path, **RUN, say=said.append)
+    assert said and "going on from step 40 of 150" in said[0]
+    assert not result["interrupted"] and result["iterations"] == 150
+    assert result["gaussians"] == expected["gaussians"]
+    for name, value in gaussians(whole).items():
+        torch.testing.assert_close(gaussians(tmp_path)[name], value)
+    for name, value in material(whole).items():
+        torch.testing.assert_close(material(tmp_path)[name], value)
+    assert [h["step"] for h in result["history"]] == [h["step"] for h in expected["history"]]
+    assert not state_path(tmp_path, "radiance").exists()
+    with pytest.raises(InputError, match="already holds"):  # finished: nothing to go on with
+        reconstruct(session, tmp_path, **RUN)
+
+
+def test_stage_two_goes_on_without_running_stage_one_again(session, uninterrupted, tmp_path):
+    whole, expected = uninterrupted
+    first = reconstruct(session, tmp_path, **RUN, progress=interrupt_at(5, "material"))
+    assert first["interrupted"] and first["material_iterations"] == 0  # logged every 10 steps
+    said = []
+    result = reconstruct(session, tmp_path, **RUN, say=said.append)
+    assert said == [s for s in said if s.startswith("stage II: going on from step 5 of 12")]
+    assert not result["interrupted"] and result["material_iterations"] == 12
+    assert result["iterations"] == 150  # stage I's figures kept
+    for name, value in material(whole).items():
+        torch.testing.assert_close(material(tmp_path)[name], value)
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["base_color_psnr_cc"] == pytest.approx(expected["base_color_psnr_cc"])
+
+
+def test_other_settings_are_refused_or_started_over(session, tmp_path):
+    reconstruct(session, tmp_path, **RUN, stage="radiance", progress=interrupt_at(20, "radiance"))
+    with pytest.raises(InputError, match="interrupted in stage I with another session or other"):
+        reconstruct(session, tmp_path, **RUN, stage="radiance", seed=1)
+    assert state_path(tmp_path, "radiance").exists()  # the refusal kept it
+    said = []
+    result = reconstruct(
+        session, tmp_path, **RUN, stage="radiance", seed=1, overwrite=True, say=said.append
+    )
+    assert not said and result["iterations"] == 150 and not result["interrupted"]
+
+
+def test_a_step_cut_in_two_is_not_saved(session, tmp_path, monkeypatch):
+    from evcap.recon import densify
+
+    def cut(*args, **kwargs):
+        raise KeyboardInterrupt  # a second Ctrl-C, in the middle of a step
+
+    monkeypatch.setattr(densify.Densifier, "densify", cut)
+    result = reconstruct(session, tmp_path, **RUN, stage="radiance")
+    assert result["interrupted"] and not state_path(tmp_path, "radiance").exists()
+
+
+def test_ctrl_c_asks_to_stop_and_a_second_one_interrupts():
+    before = signal.getsignal(signal.SIGINT)
+    with stop_after_step() as requested:
+        assert not requested()
+        os.kill(os.getpid(), signal.SIGINT)
+        assert requested()
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+    assert signal.getsignal(signal.SIGINT) is before
