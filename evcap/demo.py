@@ -43,6 +43,7 @@ class DemoContext:
     fixtures: Path
     preset: str
     progress: Callable[[str], object]  # a description -> a context manager giving update()
+    say: Callable[[str], None] = print
 
     @property
     def scene(self) -> Path:
@@ -80,7 +81,7 @@ def run_demo(
                 "(hw-fixtures/); run the demo from a clone, or name the folder with --fixtures"
             )
     state = _read_state(out, preset, force)
-    ctx = DemoContext(out, fixtures, preset, progress or progress_bar)
+    ctx = DemoContext(out, fixtures, preset, progress or progress_bar, say)
     steps = demo_steps(ctx)
     started = time.perf_counter()
     redo = False
@@ -246,6 +247,7 @@ def _reconstruct(ctx: DemoContext, stage: str) -> str:
             stage=stage,
             relight=relight,
             overwrite=True,
+            say=ctx.say,
             progress=update,
         )
     if m.get("interrupted"):

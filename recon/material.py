@@ -241,6 +241,7 @@ class MaterialFit:
     log: list[MaterialLog]
     interrupted: bool
     edges: dict[int, torch.Tensor]  # frame -> edge map [h, w] on the render grid
+    steps: int = 0  # the steps done
 
 
 def edge_frames(data: TrainingData, count: int) -> np.ndarray:
@@ -392,7 +393,7 @@ def train_material(
             interrupted = True
     if interrupted and whole and save_state is not None:
         save_state(state())  # a step cut in two is not saved: the last whole one stays
-    return MaterialFit(field, log, interrupted, edges)
+    return MaterialFit(field, log, interrupted, edges, step)
 
 
 def edge_tv(maps: torch.Tensor, weight: torch.Tensor, normal_weight: float) -> torch.Tensor:

@@ -131,6 +131,7 @@ class Fit:
     log: list[StepLog]  # every 10 steps
     interrupted: bool
     history: list[dict] = dataclasses.field(default_factory=list)  # the evaluations along the way
+    steps: int = 0  # the steps done
 
 
 def new_field(
@@ -260,7 +261,7 @@ def train_radiance(
             interrupted = True  # keep what was learnt so far
     if interrupted and whole and save_state is not None:
         save_state(state())  # a step cut in two is not saved: the last whole one stays
-    return Fit(field, log, interrupted, history)
+    return Fit(field, log, interrupted, history, step)
 
 
 def draw_frames(rng: np.random.Generator, frames: int, config: RadianceConfig) -> np.ndarray:

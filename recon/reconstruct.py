@@ -275,7 +275,7 @@ def _stage_radiance(
     cc = fit_color_correction(views["radiance"], truth["radiance"]) if "radiance" in truth else None
     result.update(
         {
-            "iterations": log[-1].step if log else 0,
+            "iterations": fit.steps,
             "gaussians": len(field.gaussians),
             "device": device,
             "backend": backend,
@@ -319,7 +319,7 @@ def _material_outputs(fit, poses, truth, optics, environment, out: Path, device,
     )
     result.update(
         {
-            "material_iterations": fit.log[-1].step if fit.log else 0,
+            "material_iterations": fit.steps,
             "effects": {**field.effects, **{k: k not in ablate for k in ABLATIONS}},
             "relit": environment is not None,
         }

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from contextlib import contextmanager
 
 import pytest
 
@@ -10,27 +11,30 @@ from evcap import demo
 from evcap.errors import InputError, OutputExistsError
 
 
-def test_demo_runs_resumes_and_writes_the_report(tmp_path, monkeypatch):
+@contextmanager
+def ctrl_c_in_stage_two(description: str):
+    """The demo's progress bars, Ctrl-C pressed after stage II's step 25."""
+
+    def update(done: int, total: int, status: str = "") -> None:
+        if description == "stage II" and done == 25:
+            raise KeyboardInterrupt
+
+    yield update
+
+
+def test_demo_runs_resumes_and_writes_the_report(tmp_path):
     out = tmp_path / "demo"
     lines: list[str] = []
-    real = demo._reconstruct
-
-    def stopped_in_stage_two(ctx, stage):
-        if stage == "material":
-            raise KeyboardInterrupt
-        return real(ctx, stage)
-
-    monkeypatch.setattr(demo, "_reconstruct", stopped_in_stage_two)
     with pytest.raises(demo.DemoInterrupted, match="stage II"):
-        demo.run_demo(out, preset="tiny", say=lines.append)
+        demo.run_demo(out, preset="tiny", say=lines.append, progress=ctrl_c_in_stage_two)
     state = json.loads((out / "demo.json").read_text())
     steps = [s.name for s in demo.demo_steps(demo.DemoContext(out, out, "tiny", None))]
     assert list(state["done"]) == steps[:6]
 
-    monkeypatch.setattr(demo, "_reconstruct", real)
     lines.clear()
     report = demo.run_demo(out, preset="tiny", say=lines.append)
     assert sum("done before" in line for line in lines) == 6
+    assert any("stage II: going on from step 25 of 60" in line for line in lines)
     assert report == out / "report.html" and report.stat().st_size > 100_000
     state = json.loads((out / "demo.json").read_text())
     assert list(state["done"]) == steps
