@@ -159,9 +159,12 @@ def calibrate(
     board: Board = DEFAULT_BOARD,
     skip: frozenset[str] = frozenset(),
     say: Callable[[str], None] = lambda line: None,
+    progress: Callable[[int, int, str], None] | None = None,
 ) -> Calibration:
     """Measure what the session at ``path`` allows. ``skip``: parts of SKIPPABLE not to measure
-    (what the session's /calibration already holds is kept for them)."""
+    (what the session's /calibration already holds is kept for them). ``progress(done, total,
+    stage)`` follows the thresholds' fit and the board's detection."""
+    report = progress or (lambda done, total, stage: None)
     unknown = set(skip) - set(SKIPPABLE)
     if unknown:
         raise InputError(
@@ -201,6 +204,7 @@ def calibrate(
             sensor.color_filter,
             exclude=noise.hot_pixels,
             refractory_us=noise.refractory_period_us,
+            progress=lambda done, total: report(done, total, "thresholds"),
         )
         on, off, t_source = cal_thresholds.on, cal_thresholds.off, "APS frames vs events"
         confidence = cal_thresholds.confidence
@@ -229,7 +233,13 @@ def calibrate(
             images, times = _event_images(events, on, off, noise.hot_pixels, board)
             i_source = "event frames"
         try:
-            intrinsics = calibrate_intrinsics(images, times, sensor.color_filter, board)
+            intrinsics = calibrate_intrinsics(
+                images,
+                times,
+                sensor.color_filter,
+                board,
+                progress=lambda done, total: report(done, total, "finding the board"),
+            )
         except CalibrationError as e:
             raise CalibrationError(
                 f"{e} (to measure only the thresholds, hot pixels and noise: --skip intrinsics)"

@@ -316,11 +316,17 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
             return 0
     if args.session is None:
         raise InputError("give the session to calibrate (or only --print-board OUT.png)")
+    from evcap._progress import progress_bar
     from evcap.calib.calibrate import calibrate, write_calibration
 
-    cal = calibrate(
-        args.session, board=board, skip=frozenset(args.skip or ()), say=lambda line: print(line)
-    )
+    with progress_bar("calibrating") as update:
+        cal = calibrate(
+            args.session,
+            board=board,
+            skip=frozenset(args.skip or ()),
+            say=print,
+            progress=update,
+        )
     for path in [args.session, *(args.apply_to or ())]:
         write_calibration(path, cal)
     print(cal.summary())
@@ -338,7 +344,7 @@ def _cmd_poses(args: argparse.Namespace) -> int:
     from evcap._progress import progress_bar
     from evcap.poses.estimate import estimate_poses, write_poses
 
-    with progress_bar("structure from motion") as update:
+    with progress_bar("poses") as update:
         result = estimate_poses(
             args.session,
             kind=args.frames,

@@ -189,7 +189,8 @@ def _record(ctx: DemoContext, fixture: str, path: Path) -> str:
 def _calibrate(ctx: DemoContext) -> str:
     from evcap.calib.calibrate import calibrate, write_calibration
 
-    cal = calibrate(ctx.calibration, say=lambda line: None)
+    with ctx.progress("calibrating") as update:
+        cal = calibrate(ctx.calibration, progress=update)
     for path in (ctx.calibration, ctx.scene):
         write_calibration(path, cal)
     return cal.summary().replace("\n", "; ")
@@ -198,7 +199,7 @@ def _calibrate(ctx: DemoContext) -> str:
 def _poses(ctx: DemoContext) -> str:
     from evcap.poses.estimate import estimate_poses, write_poses
 
-    with ctx.progress("structure from motion") as update:
+    with ctx.progress("poses") as update:
         result = estimate_poses(ctx.scene, progress=update)
     write_poses(ctx.scene, result)
     return result.summary()

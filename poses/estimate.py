@@ -127,6 +127,7 @@ def estimate_poses(
         threshold_off=off,
         hot_pixels=hot,
         aps=frames if with_aps else None,
+        progress=(lambda done, total: progress(done, total, "frames")) if progress else None,
     )
     if export_frames is not None:
         write_frames(images, times, export_frames)
