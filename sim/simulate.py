@@ -414,47 +414,59 @@ def simulate(
         "seed": sim.seed,
         "effects": json.dumps(sim.effects),
     }
-    with SessionWriter(output, sensor, attrs=attrs, overwrite=overwrite) as writer:
-        stats = sim.run(writer)
-    data, gt_attrs = sim.ground_truth()
-    write_group(output, "gt", data, gt_attrs)
-    times = np.arange(0.0, scene.trajectory.duration_s + 1e-9, 1.0 / POSE_RATE_HZ)
-    write_group(
-        output,
-        "poses",
-        {"t": np.round(times * 1e6).astype(np.int64), "T_world_cam": sim.trajectory.poses(times)},
-        {
-            "source": "ground truth",
-            "frame": "camera-to-world, OpenCV camera axes",
-            "interpolation": "linear position, slerp rotation",
-        },
-    )
-    effects = sim.effects
-    hot = np.zeros(cam.width * cam.height, np.uint8)
-    hot[sim.pixels.hot] = 1
-    write_group(
-        output,
-        "calibration",
-        {
-            "K": cam.K,
-            "dist": np.asarray(scene.camera.distortion, np.float64),
-            "threshold_on": data["threshold_on"],
-            "threshold_off": data["threshold_off"],
-            "hot_pixels": hot.reshape(cam.height, cam.width),
-        },
-        {
-            "source": "ground truth",
-            "distortion_model": scene.camera.distortion_model,
-            "width": cam.width,
-            "height": cam.height,
-            "refractory_period_us": float(effects.get("refractory", {}).get("period_us", 0)),
-            "background_activity_hz": float(
-                effects.get("background_activity", {}).get("rate_hz", 0)
-            ),
-            "shot_noise_hz": float(effects.get("shot_noise", {}).get("rate_hz", 0)),
-            "rms_reprojection_px": 0.0,
-        },
-    )
+    # written under another name and renamed when whole: an interrupted simulation leaves
+    # nothing half-made (nor harms what ``output`` held), and is repeated exactly by running
+    # it again
+    partial = output.with_name(output.name + ".partial")
+    try:
+        with SessionWriter(partial, sensor, attrs=attrs, overwrite=True) as writer:
+            stats = sim.run(writer)
+        data, gt_attrs = sim.ground_truth()
+        write_group(partial, "gt", data, gt_attrs)
+        times = np.arange(0.0, scene.trajectory.duration_s + 1e-9, 1.0 / POSE_RATE_HZ)
+        write_group(
+            partial,
+            "poses",
+            {
+                "t": np.round(times * 1e6).astype(np.int64),
+                "T_world_cam": sim.trajectory.poses(times),
+            },
+            {
+                "source": "ground truth",
+                "frame": "camera-to-world, OpenCV camera axes",
+                "interpolation": "linear position, slerp rotation",
+            },
+        )
+        effects = sim.effects
+        hot = np.zeros(cam.width * cam.height, np.uint8)
+        hot[sim.pixels.hot] = 1
+        write_group(
+            partial,
+            "calibration",
+            {
+                "K": cam.K,
+                "dist": np.asarray(scene.camera.distortion, np.float64),
+                "threshold_on": data["threshold_on"],
+                "threshold_off": data["threshold_off"],
+                "hot_pixels": hot.reshape(cam.height, cam.width),
+            },
+            {
+                "source": "ground truth",
+                "distortion_model": scene.camera.distortion_model,
+                "width": cam.width,
+                "height": cam.height,
+                "refractory_period_us": float(effects.get("refractory", {}).get("period_us", 0)),
+                "background_activity_hz": float(
+                    effects.get("background_activity", {}).get("rate_hz", 0)
+                ),
+                "shot_noise_hz": float(effects.get("shot_noise", {}).get("rate_hz", 0)),
+                "rms_reprojection_px": 0.0,
+            },
+        )
+    except BaseException:
+        partial.unlink(missing_ok=True)
+        raise
+    partial.replace(output)
     if fixture is not None:
         from evcap.sim.fixture import write_session_fixture
 

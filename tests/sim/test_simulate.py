@@ -204,3 +204,20 @@ def test_cli_simulate(tiny_scene, tmp_path):
         text=True,
     )
     assert r.returncode == 2 and "Traceback" not in r.stderr
+
+
+def test_an_interrupted_simulation_leaves_nothing_half_made(tiny_scene, tmp_path):
+    out = tmp_path / "s.h5"
+    out.write_bytes(b"what was there")
+
+    def ctrl_c(done, total):
+        if done > 0.2 * total:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        simulate(load_scene(tiny_scene()), out, overwrite=True, progress=ctrl_c)
+    assert out.read_bytes() == b"what was there"
+    assert list(tmp_path.iterdir()) == [out]
+    simulate(load_scene(tiny_scene()), out, overwrite=True)
+    with Session.open(out) as s:
+        assert {"gt", "poses", "calibration"} <= set(s.groups)
