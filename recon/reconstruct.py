@@ -134,7 +134,7 @@ def reconstruct(
         # stage I is not run again for stage II alone, nor to go on with an interrupted stage II
         skip = stage == "material" or states["material"] is not None
         previous = out / "metrics.json"
-        before = json.loads(previous.read_text()) if previous.exists() and resume else {}
+        before = json.loads(previous.read_text()) if previous.exists() else {}
         result = dict(before) if skip else {}
         stopped = False
         if not skip:
