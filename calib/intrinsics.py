@@ -259,6 +259,10 @@ def _solve(
     obj = [v.obj.astype(np.float32) for v in views]
     img = [v.corners.astype(np.float32) for v in views]
     criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    # OpenCV's threads sum the normal equations in any order: on one, the same views give the
+    # same intrinsics bit for bit (and poses and reconstructions after them)
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
     try:
         rms, K, dist, _, _, std, _, per_view = cv2.calibrateCameraExtended(
             obj, img, (width, height), None, None, flags=flags, criteria=criteria
@@ -268,6 +272,8 @@ def _solve(
             f"the calibration failed on {len(views)} views ({str(e).strip().splitlines()[-1]}): "
             "the views are too alike; move and tilt the board more"
         ) from None
+    finally:
+        cv2.setNumThreads(threads)
     dist = dist.reshape(-1)[:5].astype(np.float64)
     if not (np.isfinite(K).all() and np.isfinite(dist).all() and math.isfinite(rms)):
         raise CalibrationError(

@@ -353,6 +353,7 @@ def _cmd_poses(args: argparse.Namespace) -> int:
             export_frames=args.export_frames,
             gravity=not args.no_gravity,
             aps={"auto": None, "on": True, "off": False}[args.aps],
+            threads=args.threads,
             say=print,
             progress=update,
         )
@@ -572,6 +573,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="whether the filter's frames lean on the APS frames (a complementary filter); auto "
         "(default): when the camera turns at most 2 deg between two of them (by the IMU; "
         "without it, when they come at 20 Hz or more)",
+    )
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        metavar="N",
+        help="structure from motion's threads (default 1: the same session gives the same "
+        "poses bit for bit; more are faster, but COLMAP then varies a little from run to run; "
+        "0: every core)",
     )
     p.add_argument(
         "--no-gravity",

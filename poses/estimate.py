@@ -72,13 +72,14 @@ def estimate_poses(
     export_frames: str | Path | None = None,
     gravity: bool = True,
     aps: bool | None = None,
+    threads: int = 1,
     say: Callable[[str], None] = lambda line: None,
     progress: Callable[[int, int, str], None] | None = None,
 ) -> PosesResult:
     """Make frames from the session's events and register them by structure from motion;
     with ``gravity``, turn the world so that z is up when the session has the IMU. ``aps``:
     whether the filter's frames lean on the APS frames; None decides from the motion between
-    them (`aps_frames_usable`)."""
+    them (`aps_frames_usable`). ``threads``: structure from motion's (see run_sfm)."""
     from evcap.poses.sfm import run_sfm
 
     with Session.open(path) as s:
@@ -133,7 +134,7 @@ def estimate_poses(
         write_frames(images, times, export_frames)
         say(f"frames written to {export_frames}")
     say("structure from motion (pycolmap), intrinsics fixed to the calibration")
-    sfm = run_sfm(list(images), times, K, dist, progress=progress)
+    sfm = run_sfm(list(images), times, K, dist, threads=threads, progress=progress)
     T_world_cam, up = sfm.T_world_cam, None
     if gravity and len(imu) and len(sfm.t_us) >= 2:
         try:

@@ -39,7 +39,7 @@ FEW_FEATURES = 100  # fewer per frame on average: name too little texture as the
 MIN_FRAMES = 3  # fewer registered: no poses worth returning
 RELAXED_INIT_TRI_ANGLE = 4.0  # degrees (COLMAP's default 16), when half the frames fail
 RELAXED_ABS_POSE_INLIERS = 15  # 2D-3D matches to register a frame (COLMAP's default 30)
-SEED = 0  # RANSAC and mapping: the same frames give the same poses
+SEED = 0  # RANSAC and mapping: the same frames give the same poses (with one thread)
 # a global bundle adjustment each time the model grows by 40 % (COLMAP: 10 %): on a 240-frame
 # orbit, mapping takes about a third less time with the same errors (the local adjustment
 # still runs at every frame, and a global one at the end)
@@ -69,6 +69,7 @@ def run_sfm(
     *,
     workdir: Path | None = None,
     loop_every: int = 10,
+    threads: int = 1,
     progress: Callable[[int, int, str], None] | None = None,
 ) -> SfmResult:
     """Poses of ``images`` (uint8, gray [H, W] or RGB [H, W, 3], all one size) taken at
@@ -77,6 +78,9 @@ def run_sfm(
     register are left out (``unregistered_times``). ``workdir`` keeps what COLMAP was given and
     made (images/, database.db, loop_pairs.txt, sparse/: an earlier run's are replaced); by
     default a temporary folder is used.
+    ``threads``: COLMAP's threads (0: every core). With one, the same frames give the same
+    poses bit for bit; with more it is faster, but COLMAP's matching and mapping then vary
+    from run to run (a few frames more or fewer registered).
     ``progress(done, total, stage)`` follows the run. Raises PosesError when no model of at
     least 3 frames can be made, naming why."""
     import pycolmap
@@ -86,6 +90,9 @@ def run_sfm(
     model, params = colmap_camera(K, dist)
     if loop_every < 1:
         raise InputError(f"loop_every must be at least 1, got {loop_every}")
+    if threads < 0:
+        raise InputError(f"threads must be 0 (every core) or more, got {threads}")
+    threads = threads or _cores()
     report = progress or (lambda done, total, stage: None)
     n = len(images)
     level = pycolmap.logging.minloglevel
@@ -93,13 +100,13 @@ def run_sfm(
     pycolmap.logging.minloglevel = max(int(level), int(pycolmap.logging.FATAL))
     try:
         best, names, stats, count = _best_model(
-            pycolmap, images, model, params, workdir, loop_every, report
+            pycolmap, images, model, params, workdir, loop_every, threads, report
         )
         if best is None or best.num_reg_images() < n // 2:
             # few frames registered: a scene with few features (an object against a plain
             # background) starts and grows a model only with laxer thresholds
             lax = _best_model(
-                pycolmap, images, model, params, workdir, loop_every, report, relaxed=True
+                pycolmap, images, model, params, workdir, loop_every, threads, report, relaxed=True
             )
             if lax[0] is not None and (
                 best is None or lax[0].num_reg_images() > best.num_reg_images()
@@ -196,7 +203,7 @@ def _check_frames(images: list[np.ndarray], times_us: np.ndarray) -> tuple[list,
     return images, times_us.astype(np.int64)
 
 
-def _threads() -> int:
+def _cores() -> int:
     # COLMAP's -1 means every hardware thread, which in a container is the host's count
     try:
         return max(1, len(os.sched_getaffinity(0)))
@@ -204,22 +211,26 @@ def _threads() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _best_model(pycolmap, images, model, params, workdir, loop_every, report, relaxed=False):
+def _best_model(
+    pycolmap, images, model, params, workdir, loop_every, threads, report, relaxed=False
+):
     """(the model with the most frames or None, the image names, the database's statistics,
     how many models)."""
     with tempfile.TemporaryDirectory(prefix="evcap-sfm-") as tmp:
         work = Path(workdir) if workdir is not None else Path(tmp)
-        recs, names = _colmap(pycolmap, images, model, params, work, loop_every, report, relaxed)
+        recs, names = _colmap(
+            pycolmap, images, model, params, work, loop_every, threads, report, relaxed
+        )
         stats = _match_stats(pycolmap, work / "database.db", len(images))
         best = max(recs.values(), key=lambda r: r.num_reg_images(), default=None)
     return best, names, stats, len(recs)
 
 
-def _colmap(pycolmap, images, model, params, work, loop_every, report, relaxed=False):
+def _colmap(pycolmap, images, model, params, work, loop_every, threads, report, relaxed=False):
     """Run COLMAP in ``work``: the reconstructions (a dict, maybe empty) and the image names."""
     import cv2
 
-    n, threads = len(images), _threads()
+    n = len(images)
     folder, database, sparse = work / "images", work / "database.db", work / "sparse"
     for old in (folder, sparse):
         shutil.rmtree(old, ignore_errors=True)

@@ -131,6 +131,15 @@ def test_poses_of_a_rendered_orbit_match_the_truth(textured, tmp_path):
     assert (tmp_path / "database.db").exists() and (tmp_path / "images" / "000029.png").exists()
 
 
+def test_the_same_frames_give_the_same_poses(textured):
+    images, times, _, K = textured
+    first, again = (run_sfm(images[::2], times[::2], K, np.zeros(0)) for _ in range(2))
+    np.testing.assert_array_equal(first.t_us, again.t_us)
+    np.testing.assert_array_equal(first.T_world_cam, again.T_world_cam)
+    with pytest.raises(InputError, match="threads"):
+        run_sfm(images, times, K, np.zeros(0), threads=-1)
+
+
 def test_intrinsics_stay_fixed_and_strays_are_left_out(textured, tmp_path):
     import pycolmap
 
