@@ -48,10 +48,11 @@ def stop_after_step() -> Iterator[Callable[[], bool]]:
 
 def session_fingerprint(session: Session) -> str:
     """What a training depends on in the session: its events' count and span, the poses and
-    the intrinsics (a digest)."""
+    the calibration (a digest)."""
     digest = hashlib.sha1()
     digest.update(repr((session.n_events, session.time_range())).encode())
-    for group, names in (("poses", ("t", "T_world_cam")), ("calibration", ("K",))):
+    calibration = ("K", "dist", "threshold_on", "threshold_off", "hot_pixels")
+    for group, names in (("poses", ("t", "T_world_cam")), ("calibration", calibration)):
         if group in session.groups:
             g = session.group(group)
             for name in names:
