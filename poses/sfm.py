@@ -37,8 +37,14 @@ MIN_MATCHES = 15  # verified matches for a pair to count (COLMAP's default)
 INIT_MIN_INLIERS = 100  # to start a model; COLMAP halves it twice before giving up
 FEW_FEATURES = 100  # fewer per frame on average: name too little texture as the cause
 MIN_FRAMES = 3  # fewer registered: no poses worth returning
-RELAXED_INIT_TRI_ANGLE = 4.0  # degrees (COLMAP's default 16), when half the frames fail
+# when fewer than this share of the frames register, mapping is tried again with laxer
+# thresholds, and the model with more frames kept: on the demo's orbit, 30 -> 48 of 59 frames
+RETRY_BELOW = 0.8
+RELAXED_INIT_TRI_ANGLE = 4.0  # degrees (COLMAP's default 16)
 RELAXED_ABS_POSE_INLIERS = 15  # 2D-3D matches to register a frame (COLMAP's default 30)
+# degrees between the rays of a point to triangulate and keep it (COLMAP's default 1.5): the
+# event frames' features live a few frames, a degree or two apart on a fast orbit
+RELAXED_TRI_ANGLE = 1.0
 SEED = 0  # RANSAC and mapping: the same frames give the same poses (with one thread)
 # a global bundle adjustment each time the model grows by 40 % (COLMAP: 10 %): on a 240-frame
 # orbit, mapping takes about a third less time with the same errors (the local adjustment
@@ -102,7 +108,7 @@ def run_sfm(
         best, names, stats, count = _best_model(
             pycolmap, images, model, params, workdir, loop_every, threads, report
         )
-        if best is None or best.num_reg_images() < n // 2:
+        if best is None or best.num_reg_images() < RETRY_BELOW * n:
             # few frames registered: a scene with few features (an object against a plain
             # background) starts and grows a model only with laxer thresholds
             lax = _best_model(
@@ -309,6 +315,8 @@ def _colmap(pycolmap, images, model, params, work, loop_every, threads, report, 
     if relaxed:
         options.mapper.init_min_tri_angle = RELAXED_INIT_TRI_ANGLE
         options.mapper.abs_pose_min_num_inliers = RELAXED_ABS_POSE_INLIERS
+        options.triangulation.min_angle = RELAXED_TRI_ANGLE
+        options.mapper.filter_min_tri_angle = RELAXED_TRI_ANGLE
     options.mapper.num_threads = threads
     options.mapper.random_seed = SEED
     done = [0]
