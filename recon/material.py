@@ -35,7 +35,7 @@ from evcap.recon.radiance import (
     windows_event_loss,
 )
 from evcap.recon.rasterize import Camera, Render, gaussian_normals, rasterize
-from evcap.recon.resume import PeriodicSave, random_states, restore_random_states, stop_after_step
+from evcap.recon.resume import Steps, random_states, restore_random_states
 from evcap.recon.sh import eval_sh
 from evcap.recon.shading import (
     DIFFUSE_DIRECTIONS,
@@ -316,84 +316,68 @@ def train_material(
         stage1, max_window_frames=max(1, int(stage1.max_window_frames / stride))
     )
     log: list[MaterialLog] = []
-    step, elapsed = 0, 0.0
+    steps = Steps(config.iterations, save_state, save_every_s, clock, resume)
     if resume is not None:
         optimizer.load_state_dict(resume["optimizer"])
         restore_random_states(rng, resume["random"])
         log = [MaterialLog(**x) for x in resume["log"]]
-        step, elapsed = int(resume["step"]), float(resume["seconds"])
-    started = clock() - elapsed
-    interrupted, whole = False, True
-    paused = 0.0
 
     def state() -> dict:
         return {
-            "step": step,
+            "step": steps.step,
             "material": field.state_dict(),
             "optimizer": optimizer.state_dict(),
             "random": random_states(rng),
             "log": [dataclasses.asdict(x) for x in log],
-            "seconds": clock() - started - paused,
+            "seconds": steps.seconds(),
         }
 
-    periodic = PeriodicSave(save_state, save_every_s, clock)
-    with stop_after_step() as stop_requested:
-        try:
-            while step < config.iterations:
-                if stop_requested():
-                    interrupted = True
-                    break
-                whole = False
-                step += 1
-                pick = draw_frames(rng, len(frames_all), spacing)
-                frames = frames_all[pick]
-                poses = data.track.at(data.windows.frame_times[frames])
-                renders = [field.render(T, data.grid) for T in poses]
-                seen = [data.grid.sample(r.color[..., :3]) for r in renders]
-                ev = windows_event_loss(data, stage1, frames, seen)
-                total = ev
-                terms = {"event": ev.item(), "distill": 0.0, "anchor": 0.0, "tv": 0.0}
-                if "distill" not in ablate:
-                    dl = 0
-                    for f, T, r in zip(frames, poses, renders, strict=True):
-                        if int(f) not in stage1_cache:
-                            with torch.no_grad():
-                                stage1_cache[int(f)] = radiance.render(T, data.grid).color
-                        dl = dl + (r.color[..., :3] - stage1_cache[int(f)]).abs().mean()
-                    dl = dl / len(renders)
-                    total = total + config.distill_weight * dl
-                    terms["distill"] = dl.item()
-                if "anchor" not in ablate:
-                    an = anchor_loss(torch.cat(seen), stage1.anchor_level)
-                    total = total + config.anchor_weight * an
-                    terms["anchor"] = an.item()
-                if "tv" not in ablate:
-                    tv = sum(
-                        edge_tv(r.color, weights[int(f)], config.tv_normal_weight)
-                        for f, r in zip(frames, renders, strict=True)
-                    ) / len(renders)
-                    total = total + config.tv_weight * tv
-                    terms["tv"] = tv.item()
-                if not torch.isfinite(total):
-                    raise NumericalError(f"stage II: the loss became {float(total)} at step {step}")
-                total.backward()
-                optimizer.step()
-                optimizer.zero_grad(set_to_none=True)
-                with torch.no_grad():
-                    field.normals.data = F.normalize(field.normals.data, dim=1)
-                loss = total.item()
-                if step % 10 == 0 or step == config.iterations:
-                    seconds = clock() - started - paused
-                    log.append(MaterialLog(step, loss, **terms, seconds=seconds))
-                whole = True
-                paused += periodic(state)
-                if progress:
-                    progress(step, config.iterations, f"material loss {loss:.4f}")
-        except KeyboardInterrupt:
-            interrupted = True
-    if interrupted and whole and save_state is not None:
-        save_state(state())  # a step cut in two is not saved: the last whole one stays
-    return MaterialFit(field, log, interrupted, edges, step)
+    with steps.running(state):
+        while steps.next():
+            step = steps.step
+            pick = draw_frames(rng, len(frames_all), spacing)
+            frames = frames_all[pick]
+            poses = data.track.at(data.windows.frame_times[frames])
+            renders = [field.render(T, data.grid) for T in poses]
+            seen = [data.grid.sample(r.color[..., :3]) for r in renders]
+            ev = windows_event_loss(data, stage1, frames, seen)
+            total = ev
+            terms = {"event": ev.item(), "distill": 0.0, "anchor": 0.0, "tv": 0.0}
+            if "distill" not in ablate:
+                dl = 0
+                for f, T, r in zip(frames, poses, renders, strict=True):
+                    if int(f) not in stage1_cache:
+                        with torch.no_grad():
+                            stage1_cache[int(f)] = radiance.render(T, data.grid).color
+                    dl = dl + (r.color[..., :3] - stage1_cache[int(f)]).abs().mean()
+                dl = dl / len(renders)
+                total = total + config.distill_weight * dl
+                terms["distill"] = dl.item()
+            if "anchor" not in ablate:
+                an = anchor_loss(torch.cat(seen), stage1.anchor_level)
+                total = total + config.anchor_weight * an
+                terms["anchor"] = an.item()
+            if "tv" not in ablate:
+                tv = sum(
+                    edge_tv(r.color, weights[int(f)], config.tv_normal_weight)
+                    for f, r in zip(frames, renders, strict=True)
+                ) / len(renders)
+                total = total + config.tv_weight * tv
+                terms["tv"] = tv.item()
+            if not torch.isfinite(total):
+                raise NumericalError(f"stage II: the loss became {float(total)} at step {step}")
+            total.backward()
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+            with torch.no_grad():
+                field.normals.data = F.normalize(field.normals.data, dim=1)
+            loss = total.item()
+            if step % 10 == 0 or step == config.iterations:
+                log.append(MaterialLog(step, loss, **terms, seconds=steps.seconds()))
+            steps.end()
+            if progress:
+                progress(step, config.iterations, f"material loss {loss:.4f}")
+    return MaterialFit(field, log, steps.interrupted, edges, steps.step)
 
 
 def edge_tv(maps: torch.Tensor, weight: torch.Tensor, normal_weight: float) -> torch.Tensor:

@@ -25,12 +25,7 @@ from evcap.recon.gaussians import Background, Gaussians, make_optimizer, means_l
 from evcap.recon.losses import anchor_loss, event_loss, log_radiance, normal_loss
 from evcap.recon.optics import CHANNEL_WEIGHTS, RenderGrid, SensorOptics, render_grid
 from evcap.recon.rasterize import Camera, Render, rasterize
-from evcap.recon.resume import (
-    PeriodicSave,
-    random_states,
-    restore_random_states,
-    stop_after_step,
-)
+from evcap.recon.resume import Steps, random_states, restore_random_states
 from evcap.recon.volume import SceneVolume, sample_points, scene_volume
 from evcap.session import Session
 
@@ -186,23 +181,19 @@ def train_radiance(
     rng = np.random.default_rng(seed + 1)
     log: list[StepLog] = []
     history: list[dict] = []
-    step, elapsed = 0, 0.0
+    steps = Steps(config.iterations, save_state, save_every_s, clock, resume)
     if resume is not None:
         optimizer.load_state_dict(resume["optimizer"])
         densifier.grad_sum, densifier.count = resume["grad_sum"], resume["count"]
         restore_random_states(rng, resume["random"])
         log = [StepLog(**x) for x in resume["log"]]
         history = list(resume["history"])
-        step, elapsed = int(resume["step"]), float(resume["seconds"])
-    started = clock() - elapsed
     degree_every = max(config.iterations // 30, 1)
-    interrupted, whole = False, True
     evaluate_at = set(np.linspace(0, config.iterations, evaluations + 1)[1:].round().astype(int))
-    paused = 0.0
 
     def state() -> dict:
         return {
-            "step": step,
+            "step": steps.step,
             "gaussians": field.gaussians.state_dict(),
             "background": field.background.faces.detach(),
             "optimizer": optimizer.state_dict(),
@@ -211,57 +202,45 @@ def train_radiance(
             "random": random_states(rng),
             "log": [dataclasses.asdict(x) for x in log],
             "history": history,
-            "seconds": clock() - started - paused,
+            "seconds": steps.seconds(),
         }
 
-    periodic = PeriodicSave(save_state, save_every_s, clock)
-    with stop_after_step() as stop_requested:
-        try:
-            while step < config.iterations:
-                if stop_requested():
-                    interrupted = True
-                    break
-                whole = False
-                step += 1
-                sh_degree = min(config.sh_degree, (step - 1) // degree_every)
-                frames = draw_frames(rng, len(data.windows), config)
-                renders, total, terms = _losses(field, data, config, frames, sh_degree, step)
-                if not torch.isfinite(total):
-                    raise NumericalError(f"stage I: the loss became {float(total)} at step {step}")
-                total.backward()
-                loss = total.item()
-                for r in renders:
-                    densifier.observe(r, data.grid.width, data.grid.height)
-                for group in optimizer.param_groups:
-                    if group["name"] == "means":
-                        group["lr"] = means_lr(config, extent, step)
-                optimizer.step()
-                optimizer.zero_grad(set_to_none=True)
-                with torch.no_grad():
-                    q = field.gaussians.quats
-                    q.data = F.normalize(q.data, dim=1)  # any length is a rotation; keep off zero
-                densify, reset = densifier.due(step)
-                if densify:
-                    densifier.densify(field.gaussians, optimizer)
-                if reset:
-                    densifier.reset_opacities(field.gaussians, optimizer)
-                n = len(field.gaussians)
-                if step % 10 == 0 or step == config.iterations:
-                    seconds = clock() - started - paused
-                    log.append(StepLog(step, loss, **terms, gaussians=n, seconds=seconds))
-                if evaluate is not None and step in evaluate_at:
-                    seconds, before = clock() - started - paused, clock()
+    with steps.running(state):
+        while steps.next():
+            step = steps.step
+            sh_degree = min(config.sh_degree, (step - 1) // degree_every)
+            frames = draw_frames(rng, len(data.windows), config)
+            renders, total, terms = _losses(field, data, config, frames, sh_degree, step)
+            if not torch.isfinite(total):
+                raise NumericalError(f"stage I: the loss became {float(total)} at step {step}")
+            total.backward()
+            loss = total.item()
+            for r in renders:
+                densifier.observe(r, data.grid.width, data.grid.height)
+            for group in optimizer.param_groups:
+                if group["name"] == "means":
+                    group["lr"] = means_lr(config, extent, step)
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+            with torch.no_grad():
+                q = field.gaussians.quats
+                q.data = F.normalize(q.data, dim=1)  # any length is a rotation; keep off zero
+            densify, reset = densifier.due(step)
+            if densify:
+                densifier.densify(field.gaussians, optimizer)
+            if reset:
+                densifier.reset_opacities(field.gaussians, optimizer)
+            n = len(field.gaussians)
+            if step % 10 == 0 or step == config.iterations:
+                log.append(StepLog(step, loss, **terms, gaussians=n, seconds=steps.seconds()))
+            if evaluate is not None and step in evaluate_at:
+                seconds = steps.seconds()
+                with steps.paused_clock():
                     history.append({"step": step, "seconds": seconds, **evaluate(field)})
-                    paused += clock() - before
-                whole = True
-                paused += periodic(state)
-                if progress:
-                    progress(step, config.iterations, f"loss {loss:.4f}  {n:,} Gaussians")
-        except KeyboardInterrupt:
-            interrupted = True  # keep what was learnt so far
-    if interrupted and whole and save_state is not None:
-        save_state(state())  # a step cut in two is not saved: the last whole one stays
-    return Fit(field, log, interrupted, history, step)
+            steps.end()
+            if progress:
+                progress(step, config.iterations, f"loss {loss:.4f}  {n:,} Gaussians")
+    return Fit(field, log, steps.interrupted, history, steps.step)
 
 
 def draw_frames(rng: np.random.Generator, frames: int, config: RadianceConfig) -> np.ndarray:

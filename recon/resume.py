@@ -97,20 +97,69 @@ def restore_random_states(rng: np.random.Generator, states: dict) -> None:
         torch.cuda.set_rng_state(states["cuda"])
 
 
-class PeriodicSave:
-    """``save(state())`` at most every ``every_s`` seconds of ``clock``; a call returns the
-    seconds the saving took (not training time)."""
+class Steps:
+    """The bookkeeping of a training loop that can stop and go on: its step, its training time
+    (without the time spent saving or evaluating), Ctrl-C taken at the end of a step, and its
+    state given to ``save`` every ``every_s`` seconds and when it stops part-way. ``resume``:
+    a saved state, to go on from its step and time."""
 
     def __init__(
-        self, save: Callable[[dict], None] | None, every_s: float, clock: Callable[[], float]
+        self,
+        total: int,
+        save: Callable[[dict], None] | None,
+        every_s: float,
+        clock: Callable[[], float],
+        resume: dict | None = None,
     ) -> None:
-        self.save, self.every_s, self.clock = save, every_s, clock
-        self.last = clock()
+        self.total, self.save, self.every_s, self.clock = total, save, every_s, clock
+        self.step = int(resume["step"]) if resume is not None else 0
+        self.started = clock() - (float(resume["seconds"]) if resume is not None else 0.0)
+        self.paused = 0.0
+        self.interrupted = False
+        self.whole = True  # no step is half done
+        self.last_save = clock()
+        self.state: Callable[[], dict] = dict
+        self.requested: Callable[[], bool] = lambda: False
 
-    def __call__(self, state: Callable[[], dict]) -> float:
-        if self.save is None or self.clock() - self.last < self.every_s:
-            return 0.0
+    def seconds(self) -> float:
+        return self.clock() - self.started - self.paused
+
+    @contextmanager
+    def paused_clock(self) -> Iterator[None]:
         before = self.clock()
-        self.save(state())
-        self.last = self.clock()
-        return self.last - before
+        try:
+            yield
+        finally:
+            self.paused += self.clock() - before
+
+    @contextmanager
+    def running(self, state: Callable[[], dict]) -> Iterator[None]:
+        """Around the loop: Ctrl-C ends it with what was learnt, and ``state()`` is saved
+        then, unless a second Ctrl-C cut a step in two (the last whole one stays)."""
+        self.state = state
+        with stop_after_step() as self.requested:
+            try:
+                yield
+            except KeyboardInterrupt:
+                self.interrupted = True
+        if self.interrupted and self.whole and self.save is not None:
+            self.save(state())
+
+    def next(self) -> bool:
+        """Begin the next step; False when all are done or Ctrl-C asked to stop."""
+        if self.step >= self.total:
+            return False
+        if self.requested():
+            self.interrupted = True
+            return False
+        self.whole = False
+        self.step += 1
+        return True
+
+    def end(self) -> None:
+        """The step is whole: save the state when it is time."""
+        self.whole = True
+        if self.save is not None and self.clock() - self.last_save >= self.every_s:
+            with self.paused_clock():
+                self.save(self.state())
+            self.last_save = self.clock()

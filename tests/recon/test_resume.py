@@ -13,19 +13,10 @@ from evcap.recon.resume import state_path, stop_after_step
 from evcap.sim.scene import load_scene
 from evcap.sim.simulate import simulate
 
-ORBIT = """kind = "orbit"
-radius = 2.2
-height = 0.8
-height_swing = 0.4
-swings = 1
-degrees = 60.0
-duration_s = 0.5"""
-
-
 @pytest.fixture(scope="module")
 def session(tiny_scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("session") / "s.h5"
-    simulate(load_scene(tiny_scene(trajectory=ORBIT)), out)
+    simulate(load_scene(tiny_scene()), out)
     return out
 
 
