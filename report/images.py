@@ -1,4 +1,4 @@
-"""Arrays as images for the page: PNG data URIs, a viridis-like color map, and the renderings of
+"""Arrays as images for the page: PNG data URIs, a color map, and the renderings of
 normals, depth and linear radiance that the recovered maps and the truth share."""
 
 from __future__ import annotations
@@ -11,22 +11,6 @@ import numpy as np
 
 from evcap.recon.metrics import srgb
 
-# anchors of a perceptually even dark-blue -> green -> yellow ramp (viridis-like), 0..1 RGB
-_RAMP = np.array(
-    [
-        [0.267, 0.005, 0.329],
-        [0.283, 0.141, 0.458],
-        [0.254, 0.265, 0.530],
-        [0.207, 0.372, 0.553],
-        [0.164, 0.471, 0.558],
-        [0.128, 0.567, 0.551],
-        [0.135, 0.659, 0.518],
-        [0.267, 0.749, 0.441],
-        [0.478, 0.821, 0.318],
-        [0.741, 0.873, 0.150],
-        [0.993, 0.906, 0.144],
-    ]
-)
 INVALID_RGB = (255, 0, 255)  # NaN or infinity, in every kind of map
 EMPTY_RGB = (24, 24, 24)  # no surface in a depth or normal map
 
@@ -64,16 +48,13 @@ def value_range(
 
 
 def colormap(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """[H, W] values -> [H, W, 3] uint8 RGB on the ramp from ``lo`` to ``hi`` (clipped);
+    """[H, W] values -> [H, W, 3] uint8 RGB on OpenCV's viridis from ``lo`` to ``hi`` (clipped);
     NaN and infinity magenta."""
     v = np.asarray(values, np.float64)
     finite = np.isfinite(v)
     s = np.clip((np.where(finite, v, lo) - lo) / max(hi - lo, 1e-300), 0.0, 1.0)
-    x = s * (len(_RAMP) - 1)
-    i = np.minimum(np.floor(x).astype(np.int64), len(_RAMP) - 2)
-    f = (x - i)[..., None]
-    rgb = _RAMP[i] * (1 - f) + _RAMP[i + 1] * f
-    out = (rgb * 255 + 0.5).astype(np.uint8)
+    out = cv2.applyColorMap((s * 255 + 0.5).astype(np.uint8), cv2.COLORMAP_VIRIDIS)[..., ::-1]
+    out = np.ascontiguousarray(out)
     out[~finite] = INVALID_RGB
     return out
 
