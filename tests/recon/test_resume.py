@@ -13,6 +13,7 @@ from evcap.recon.resume import state_path, stop_after_step
 from evcap.sim.scene import load_scene
 from evcap.sim.simulate import simulate
 
+
 @pytest.fixture(scope="module")
 def session(tiny_scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("session") / "s.h5"
