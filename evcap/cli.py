@@ -260,6 +260,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
             preset=args.preset,
             stage=args.stage,
             device=args.device,
+            backend=args.backend,
             resolution=args.resolution,
             iterations=args.iterations,
             material_iterations=args.material_iterations,
@@ -619,6 +620,12 @@ def build_parser() -> argparse.ArgumentParser:
         "reference run, for a GPU",
     )
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="default: cpu")
+    p.add_argument(
+        "--backend",
+        choices=["cpu", "torch", "gsplat"],
+        help="the rasterizer: cpu (compiled, the default on the CPU), torch (the pure-PyTorch "
+        "reference, any device), gsplat (CUDA; the default on cuda when it is installed)",
+    )
     p.add_argument(
         "--resolution", type=float, metavar="R", help="render scale relative to the sensor"
     )

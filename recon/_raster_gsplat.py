@@ -10,7 +10,7 @@ import functools
 
 import torch
 
-from evcap.recon.rasterize import Camera, Render
+from evcap.recon.rasterize import Camera, Render, camera_normals
 
 
 @functools.cache
@@ -45,10 +45,10 @@ def rasterize_gsplat(
     scales: torch.Tensor,
     opacities: torch.Tensor,
     features: torch.Tensor,
-    normals: torch.Tensor,
     camera: Camera,
     near: float,
 ) -> Render:
+    normals = camera_normals(quats, scales, means, camera)
     import gsplat
 
     K = camera.K.clone()

@@ -9,6 +9,41 @@ from evcap.recon._raster_torch import ALPHA_MAX, ALPHA_MIN, T_MIN, project
 from evcap.recon.rasterize import Camera, Render
 
 
+def composite_reference(
+    means2d: torch.Tensor,
+    conics: torch.Tensor,
+    opacities: torch.Tensor,
+    values: torch.Tensor,
+    order: list[int],
+    width: int,
+    height: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each pixel's sum of w values [H, W, C] and alpha [H, W], the Gaussians taken front to
+    back in ``order``."""
+    rows, alphas = [], []
+    for y in range(height):
+        for x in range(width):
+            T = torch.ones((), dtype=values.dtype)
+            acc = torch.zeros(values.shape[1], dtype=values.dtype)
+            for i in order:
+                dx, dy = x - means2d[i, 0], y - means2d[i, 1]
+                a, b, c = conics[i]
+                sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+                if sigma < 0:  # only from rounding: the conic is positive definite
+                    continue
+                alpha = torch.clamp(opacities[i] * torch.exp(-sigma), max=ALPHA_MAX)
+                if alpha < ALPHA_MIN:
+                    continue
+                if T * (1 - alpha) <= T_MIN:
+                    break
+                acc = acc + T * alpha * values[i]
+                T = T * (1 - alpha)
+            rows.append(acc)
+            alphas.append(1 - T)
+    out = torch.stack(rows).reshape(height, width, -1)
+    return out, torch.stack(alphas).reshape(height, width)
+
+
 def rasterize_reference(
     means: torch.Tensor,
     quats: torch.Tensor,
@@ -22,30 +57,10 @@ def rasterize_reference(
     proj = project(means, quats, scales, camera, near)
     order = [int(i) for i in torch.argsort(proj.depths) if proj.valid[i]]
     values = torch.cat([features, proj.depths[:, None], normals], dim=1)
-    rows = []
-    alphas = []
-    for y in range(camera.height):
-        for x in range(camera.width):
-            T = torch.ones((), dtype=means.dtype)
-            acc = torch.zeros(values.shape[1], dtype=means.dtype)
-            for i in order:
-                dx, dy = x - proj.means2d[i, 0], y - proj.means2d[i, 1]
-                a, b, c = proj.conics[i]
-                sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-                if sigma < 0:  # only from rounding: the conic is positive definite
-                    continue
-                alpha = torch.clamp(opacities[i] * torch.exp(-sigma), max=ALPHA_MAX)
-                if alpha < ALPHA_MIN:
-                    continue
-                if T * (1 - alpha) <= T_MIN:
-                    break
-                acc = acc + T * alpha * values[i]
-                T = T * (1 - alpha)
-            rows.append(acc)
-            alphas.append(1 - T)
-    H, W, D = camera.height, camera.width, features.shape[1]
-    out = torch.stack(rows).reshape(H, W, -1)
-    alpha = torch.stack(alphas).reshape(H, W)
+    out, alpha = composite_reference(
+        proj.means2d, proj.conics, opacities, values, order, camera.width, camera.height
+    )
+    D = features.shape[1]
     depth = out[..., D] / alpha.clamp(min=1e-10)
     visible = torch.zeros(len(means), dtype=torch.bool)
     return Render(out[..., :D], depth, alpha, out[..., D + 1 :], proj.means2d, visible)

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import torch
 
-from evcap.recon.rasterize import Camera, Render, quat_to_rotmat
+from evcap.recon.rasterize import Camera, Render, camera_normals, quat_to_rotmat
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
@@ -85,19 +85,27 @@ def _extents(proj: Projected, opacities: torch.Tensor) -> tuple[torch.Tensor, ..
     return tuple(torch.where(live, v, zero) for v in (mx, my, hx, hy)) + (live,)
 
 
-def _pairs(
+def _boxes(
     proj: Projected, opacities: torch.Tensor, width: int, y0: int, y1: int
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(gaussian, x, y) of every pixel in rows [y0, y1) inside a Gaussian's ellipse box,
-    Gaussians in depth order."""
+) -> tuple[torch.Tensor, ...]:
+    """First column and row, width and height of each Gaussian's ellipse box within rows
+    [y0, y1), and its number of pixels there."""
     mx, my, hx, hy, live = _extents(proj, opacities)
     xa = torch.ceil(mx - hx).clamp(min=0, max=width).long()
     xb = torch.floor(mx + hx).clamp(min=-1, max=width - 1).long()
     ya = torch.ceil(my - hy).clamp(min=y0, max=y1).long()
     yb = torch.floor(my + hy).clamp(min=y0 - 1, max=y1 - 1).long()
     bw, bh = (xb - xa + 1).clamp(min=0), (yb - ya + 1).clamp(min=0)
-    counts = torch.where(live, bw * bh, 0)
-    order = torch.argsort(torch.where(live, proj.depths.detach(), math.inf))
+    return xa, ya, bw, bh, torch.where(live, bw * bh, 0)
+
+
+def _pairs(
+    proj: Projected, opacities: torch.Tensor, width: int, y0: int, y1: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(gaussian, x, y) of every pixel in rows [y0, y1) inside a Gaussian's ellipse box,
+    Gaussians in depth order."""
+    xa, ya, bw, _, counts = _boxes(proj, opacities, width, y0, y1)
+    order = torch.argsort(torch.where(counts > 0, proj.depths.detach(), math.inf))
     order = order[counts[order] > 0]
     counts = counts[order]
     gid = torch.repeat_interleave(order, counts)
@@ -141,10 +149,10 @@ def rasterize_torch(
     scales: torch.Tensor,
     opacities: torch.Tensor,
     features: torch.Tensor,
-    normals: torch.Tensor,
     camera: Camera,
     near: float,
 ) -> Render:
+    normals = camera_normals(quats, scales, means, camera)
     W, H, D = camera.width, camera.height, features.shape[1]
     proj = project(means, quats, scales, camera, near)
     means2d = proj.means2d
@@ -154,7 +162,8 @@ def rasterize_torch(
     params = torch.cat(
         [means2d, proj.conics, opacities[:, None], features, proj.depths[:, None], normals], 1
     )
-    visible = torch.zeros(len(means), dtype=torch.bool, device=means.device)
+    with torch.no_grad():  # as 3DGS's radii > 0: in view, whether or not occluded
+        visible = _boxes(proj, opacities, W, 0, H)[4] > 0
     out, acc = None, None
     for y0, y1 in _bands(proj, opacities, W, H):
         with torch.no_grad():
@@ -163,7 +172,6 @@ def rasterize_torch(
             hit = torch.nonzero(hit).squeeze(1)
             pix, order = torch.sort((py * W + px).index_select(0, hit), stable=True)
             gid = gid.index_select(0, hit).index_select(0, order)
-            visible[gid] = True
         pp = params.index_select(0, gid)
         o, a = _composite(_alphas(pp, pix % W, pix // W), pix, pp[:, 6:], H * W)
         out, acc = (o, a) if out is None else (out + o, acc + a)

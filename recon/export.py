@@ -160,7 +160,7 @@ def write_toml(sections: dict[str, dict], path: Path) -> None:
     path.write_text("\n".join(lines))
 
 
-def load_checkpoint(path: Path, device: str = "cpu", backend: str = "torch"):
+def load_checkpoint(path: Path, device: str = "cpu", backend: str = "cpu"):
     """(RadianceField, settings) from a stage-I checkpoint written by save_checkpoint."""
     if not path.exists():
         raise InputError(f"{path}: no stage-I checkpoint; run `evcap reconstruct --stage radiance`")

@@ -72,7 +72,7 @@ class MaterialField(torch.nn.Module):
         normals: torch.Tensor,
         visibility: torch.Tensor | None,
         indirect: bool,
-        backend: str = "torch",
+        backend: str = "cpu",
     ) -> None:
         super().__init__()
         self.gaussians = gaussians.requires_grad_(False)
@@ -166,7 +166,9 @@ def new_material_field(
         normals = torch.where(
             ((cams - g.means) * normals).sum(1, keepdim=True) < 0, -normals, normals
         )
-    occluded = config.visibility == "on" or (config.visibility == "auto" and has_occluders(g, data))
+    occluded = config.visibility == "on" or (
+        config.visibility == "auto" and has_occluders(g, data, radiance.backend)
+    )
     visibility = bake_visibility(g) if occluded else None
     indirect = config.indirect == "on" or (config.indirect == "auto" and occluded)
     field = MaterialField(g, light, normals.cpu(), visibility, indirect, radiance.backend)
@@ -202,7 +204,7 @@ def plane_normals(
 
 
 @torch.no_grad()
-def has_occluders(g: Gaussians, data: TrainingData, views: int = 4) -> bool:
+def has_occluders(g: Gaussians, data: TrainingData, backend: str, views: int = 4) -> bool:
     """Whether surfaces hide one another in the views along the path: depth jumps by more
     than OCCLUSION_JUMP between neighbouring opaque pixels on more than OCCLUDED_SHARE of them.
     (An isolated object's depth is continuous wherever it is opaque; the baked visibility
@@ -212,7 +214,8 @@ def has_occluders(g: Gaussians, data: TrainingData, views: int = 4) -> bool:
     for T in data.track.at(times.astype(np.int64)):
         viewmat = torch.as_tensor(np.linalg.inv(T), dtype=torch.float32, device=g.means.device)
         cam = Camera(viewmat, data.grid.K, data.grid.width, data.grid.height)
-        r = rasterize(g.means, g.quats, g.scales, g.opacities, g.means.new_zeros(len(g), 1), cam)
+        empty = g.means.new_zeros(len(g), 1)
+        r = rasterize(g.means, g.quats, g.scales, g.opacities, empty, cam, backend=backend)
         d, o = r.depth, r.alpha > 0.9
         opaque += int(o.sum())
         for d1, d2, o1, o2 in (

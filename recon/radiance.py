@@ -65,9 +65,7 @@ def load_training_data(session: Session, config: RadianceConfig, device: str) ->
 class RadianceField(torch.nn.Module):
     """Gaussians with view-dependent radiance, in front of a distant background."""
 
-    def __init__(
-        self, gaussians: Gaussians, background: Background, backend: str = "torch"
-    ) -> None:
+    def __init__(self, gaussians: Gaussians, background: Background, backend: str = "cpu") -> None:
         super().__init__()
         self.gaussians = gaussians
         self.background = background
@@ -153,7 +151,7 @@ def train_radiance(
     *,
     seed: int = 0,
     device: str = "cpu",
-    backend: str = "torch",
+    backend: str = "cpu",
     progress: Callable[[int, int, str], None] | None = None,
     clock: Callable[[], float] = time.perf_counter,
     evaluate: Callable[[RadianceField], dict] | None = None,

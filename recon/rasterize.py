@@ -1,10 +1,12 @@
-"""Differentiable rendering of 3D Gaussians: one interface, two backends.
+"""Differentiable rendering of 3D Gaussians: one interface, three backends.
 
-``torch``: pure PyTorch (recon/_raster_torch.py), runs everywhere; the default on the CPU.
-``gsplat``: gsplat's CUDA kernels (recon/_raster_gsplat.py), used on a CUDA device when gsplat
-is installed. Both take the same Gaussians and camera and return the same maps; they are
-tested against each other where a GPU is present, and the PyTorch one against a per-pixel
-reference (recon/_raster_reference.py) everywhere.
+``cpu``: compiled kernels with a hand-written backward pass (recon/_raster_cpu.py), the
+default on the CPU. ``torch``: pure PyTorch, autograd for the backward pass
+(recon/_raster_torch.py): the readable reference, runs everywhere. ``gsplat``: gsplat's CUDA
+kernels (recon/_raster_gsplat.py), used on a CUDA device when gsplat is installed. All take the
+same Gaussians and camera and return the same maps; the cpu and torch backends are tested
+against each other and against a per-pixel reference (recon/_raster_reference.py), gsplat
+against torch where a GPU is present.
 
 Conventions: the camera is OpenCV's (x right, y down, z forward), ``viewmat`` maps world to
 camera, ``K`` has the pixel centres at integer coordinates (as OpenCV calibrations do).
@@ -18,7 +20,7 @@ import torch
 
 from evcap.errors import InputError
 
-BACKENDS = ("torch", "gsplat")
+BACKENDS = ("cpu", "torch", "gsplat")
 
 
 @dataclass
@@ -84,12 +86,32 @@ def camera_normals(
 
 
 def default_backend(device: torch.device | str) -> str:
-    """gsplat on a CUDA device when it imports and works, else torch."""
+    """cpu on the CPU; on a CUDA device gsplat when it imports and works, else torch."""
     if torch.device(device).type != "cuda":
-        return "torch"
+        return "cpu"
     from evcap.recon import _raster_gsplat
 
     return "gsplat" if _raster_gsplat.available() else "torch"
+
+
+def pick_backend(name: str | None, device: torch.device | str) -> str:
+    """The backend asked for (None: the device's default), if it can render on ``device``."""
+    if name is None:
+        return default_backend(device)
+    if name not in BACKENDS:
+        raise InputError(f"unknown rasterizer backend {name!r}; expected one of {BACKENDS}")
+    on_cuda = torch.device(device).type == "cuda"
+    if name == "cpu" and on_cuda:
+        raise InputError("--backend cpu renders on the CPU: use --device cpu, or gsplat or torch")
+    if name == "gsplat":
+        from evcap.recon import _raster_gsplat
+
+        if not on_cuda or not _raster_gsplat.available():
+            raise InputError(
+                "--backend gsplat needs --device cuda, a CUDA GPU and gsplat (pip install "
+                "'evcap[cuda]'); use cpu or torch here"
+            )
+    return name
 
 
 def rasterize(
@@ -101,20 +123,21 @@ def rasterize(
     camera: Camera,
     *,
     background: torch.Tensor | None = None,
-    backend: str = "torch",
+    backend: str = "cpu",
     near: float = 0.01,
 ) -> Render:
     """Render N Gaussians (means [N, 3], quats [N, 4], scales [N, 3] (not log), opacities [N]
     in (0, 1), features [N, D] (colors, or any per-Gaussian values)) into ``camera``.
     ``background`` [H, W, D] or [D] is added where the Gaussians leave light through."""
-    if backend == "torch":
+    if backend == "cpu":
+        from evcap.recon._raster_cpu import rasterize_cpu as impl
+    elif backend == "torch":
         from evcap.recon._raster_torch import rasterize_torch as impl
     elif backend == "gsplat":
         from evcap.recon._raster_gsplat import rasterize_gsplat as impl
     else:
         raise InputError(f"unknown rasterizer backend {backend!r}; expected one of {BACKENDS}")
-    normals = camera_normals(quats, scales, means, camera)
-    out = impl(means, quats, scales, opacities, features, normals, camera, near)
+    out = impl(means, quats, scales, opacities, features, camera, near)
     if background is not None:
         out.color = out.color + (1 - out.alpha)[..., None] * background
     return out

@@ -33,7 +33,7 @@ from evcap.recon.export import (
 from evcap.recon.material import environment_image, light_from_image, train_material
 from evcap.recon.metrics import fit_color_correction, image_metrics
 from evcap.recon.radiance import load_training_data, train_radiance
-from evcap.recon.rasterize import default_backend
+from evcap.recon.rasterize import pick_backend
 from evcap.recon.shading import mip_chain
 from evcap.session import Session
 
@@ -74,6 +74,7 @@ def reconstruct(
     preset: str = "fast",
     stage: str = "all",
     device: str = "cpu",
+    backend: str | None = None,
     resolution: float | None = None,
     iterations: int | None = None,
     material_iterations: int | None = None,
@@ -101,7 +102,7 @@ def reconstruct(
     )
     environment = read_environment(relight) if relight is not None else None
     device = pick_device(device)
-    backend = default_backend(device)
+    backend = pick_backend(backend, device)
     if stage == "material":
         field, settings = load_checkpoint(out / "checkpoint" / "radiance.pt", device, backend)
         config = cfg.RadianceConfig(**settings)

@@ -1,5 +1,6 @@
-"""The PyTorch rasterizer against the per-pixel reference (forward and gradients), and the
-gsplat backend against the PyTorch one where a GPU is present."""
+"""The CPU and PyTorch rasterizers against the per-pixel reference (forward and gradients), and
+the gsplat backend against the PyTorch one where a GPU is present. The compiled CPU backend's
+own stages and hard cases are in test_raster_cpu.py."""
 
 import math
 
@@ -34,11 +35,14 @@ def maps(r):
     )
 
 
-def test_torch_backend_matches_the_per_pixel_reference():
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+def test_backend_matches_the_per_pixel_reference(backend):
     params = tiny_gaussians()
     means, quats, log_scales, opac, colors = params
     cam = tiny_camera()
-    out = rasterize(means, quats, log_scales.exp(), opac, colors, cam)
+    cam.viewmat.requires_grad_(True)
+    params.append(cam.viewmat)
+    out = rasterize(means, quats, log_scales.exp(), opac, colors, cam, backend=backend)
     normals = camera_normals(quats, log_scales.exp(), means, cam)
     ref = rasterize_reference(means, quats, log_scales.exp(), opac, colors, normals, cam, 0.01)
     assert out.alpha.max() > 0.5  # the Gaussians are in view, several overlapping
@@ -56,7 +60,7 @@ def test_torch_backend_matches_the_per_pixel_reference():
 def test_tiles_give_the_same_image(monkeypatch):
     means, quats, log_scales, opac, colors = tiny_gaussians(n=20, seed=3)
     cam = tiny_camera(31, 23)
-    one = rasterize(means, quats, log_scales.exp(), opac, colors, cam)
+    one = rasterize(means, quats, log_scales.exp(), opac, colors, cam, backend="torch")
     monkeypatch.setattr(_raster_torch, "PAIR_BUDGET", 200)
     assert (
         len(
@@ -66,11 +70,12 @@ def test_tiles_give_the_same_image(monkeypatch):
         )
         > 3
     )
-    tiled = rasterize(means, quats, log_scales.exp(), opac, colors, cam)
+    tiled = rasterize(means, quats, log_scales.exp(), opac, colors, cam, backend="torch")
     torch.testing.assert_close(maps(tiled), maps(one))
 
 
-def test_pixel_centres_follow_opencv():
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+def test_pixel_centres_follow_opencv(backend):
     """A small opaque Gaussian on the axis lands on the pixel at (cx, cy)."""
     cam = tiny_camera()
     cam.K[0, 2], cam.K[1, 2] = 4.0, 7.0
@@ -82,6 +87,7 @@ def test_pixel_centres_follow_opencv():
         torch.tensor([0.9], dtype=torch.float64),
         torch.ones(1, 3, dtype=torch.float64),
         cam,
+        backend=backend,
     )
     y, x = divmod(int(r.alpha.argmax()), cam.width)
     assert (x, y) == (4, 7)

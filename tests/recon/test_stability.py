@@ -32,7 +32,13 @@ def gaussians(n=40, seed=0, log_scale=-2.3, spread=0.8):
     return [p.requires_grad_(True) for p in params]
 
 
-def render_and_backward(means, quats, log_scales, logits, colors, cam, background=0.3):
+@pytest.fixture(params=["cpu", "torch"])
+def backend(request) -> str:
+    """The hard cases of rendering run on both CPU rasterizers."""
+    return request.param
+
+
+def render_and_backward(means, quats, log_scales, logits, colors, cam, backend, background=0.3):
     out = rasterize(
         means,
         quats,
@@ -41,6 +47,7 @@ def render_and_backward(means, quats, log_scales, logits, colors, cam, backgroun
         colors,
         cam,
         background=torch.full((3,), background),
+        backend=backend,
     )
     lum = out.color.mean(-1).ravel()
     loss = (
@@ -65,39 +72,39 @@ def assert_all_finite(out, loss, params):
 @pytest.mark.parametrize(
     "log_scale", [-30.0, -12.0, 4.0, 12.0], ids=["zero", "tiny", "big", "huge"]
 )
-def test_collapsed_and_huge_gaussians(log_scale):
+def test_collapsed_and_huge_gaussians(log_scale, backend):
     params = gaussians(log_scale=log_scale)
-    out, loss = render_and_backward(*params, camera())
+    out, loss = render_and_backward(*params, camera(), backend)
     assert_all_finite(out, loss, params)
     assert (out.alpha >= 0).all() and (out.alpha <= 1).all()
 
 
-def test_camera_inside_a_gaussian():
+def test_camera_inside_a_gaussian(backend):
     params = gaussians(n=5, log_scale=math.log(2.0))
     with torch.no_grad():
         params[0][0] = torch.tensor([0.0, 0.0, -3.0])  # at the camera centre
         params[0][1] = torch.tensor([0.1, 0.0, -2.995])  # just in front of it
         params[0][2] = torch.tensor([0.0, 0.2, -3.2])  # just behind it
-    out, loss = render_and_backward(*params, camera())
+    out, loss = render_and_backward(*params, camera(), backend)
     assert_all_finite(out, loss, params)
 
 
-def test_a_view_with_nothing_in_it():
+def test_a_view_with_nothing_in_it(backend):
     params = gaussians()
     with torch.no_grad():
         params[0][:, 2] -= 10  # all behind the camera
-    out, loss = render_and_backward(*params, camera(), background=0.0)
+    out, loss = render_and_backward(*params, camera(), backend, background=0.0)
     assert_all_finite(out, loss, params)
     assert out.alpha.abs().max() == 0 and out.color.abs().max() == 0
     assert (out.depth == 0).all()
 
 
 @pytest.mark.parametrize("level", [0.0, 1e6], ids=["black", "saturated"])
-def test_black_and_saturated_pixels(level):
+def test_black_and_saturated_pixels(level, backend):
     means, quats, log_scales, logits, colors = gaussians()
     colors = torch.full_like(colors, level).requires_grad_(True)
     params = [means, quats, log_scales, logits, colors]
-    out, loss = render_and_backward(*params, camera(), background=level)
+    out, loss = render_and_backward(*params, camera(), backend, background=level)
     assert_all_finite(out, loss, params)
 
 
