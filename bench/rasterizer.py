@@ -1,0 +1,200 @@
+"""Rasterizer speed: forward and forward+backward time per view for each backend, on 1 and 2
+threads (and gsplat on a CUDA GPU when there is one), side by side in one run.
+
+The Gaussians are what training renders: stage I of `evcap reconstruct --preset fast` on the
+single-object scene (14.5k Gaussians; fitted once, with the compiled backend, into
+bench/results/fields/), seen from a held-out view, at the fast preset's 173 x 130 (the sensor's
+pinhole at half scale) and at the sensor's 346 x 260; 5k of them drawn at random for the 5k
+rows. The method's scale (100k Gaussians at 800 x 800) has no such fit here: a synthetic field
+stands for it, half flattened on a sphere's surface, half through the volume around it, about
+1.5 render pixels across, opacities 0.05 to 0.95. The backward pass takes a fixed random
+weighting of every output (color, depth, alpha, normals).
+
+    .venv/bin/python bench/rasterizer.py [--quick] [--repeats N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from _common import RESULTS, report, session_of
+
+from evcap.recon.evaluate import test_views
+from evcap.recon.export import load_checkpoint
+from evcap.recon.optics import SensorOptics
+from evcap.recon.rasterize import Camera, rasterize
+from evcap.session import Session
+
+# (field, width, height, Gaussians, channels): the fast preset's size, the sensor's, the method's
+CONFIGS = [
+    ("trained", 173, 130, 5_000, 3),
+    ("trained", 173, 130, 15_000, 3),
+    ("trained", 173, 130, 15_000, 10),
+    ("trained", 346, 260, 15_000, 3),
+    ("synthetic", 800, 800, 100_000, 3),
+]
+
+
+def trained(n: int, width: int, height: int, channels: int, seed: int = 0):
+    """The stage-I field of the single-object scene (fitted once), from its first held-out
+    view through the sensor's pinhole scaled to width x height; n of its Gaussians at most."""
+    from evcap.recon.reconstruct import reconstruct
+
+    session = session_of("single_object")
+    out = RESULTS / "fields" / "single_object_fast"
+    checkpoint = out / "checkpoint" / "radiance.pt"
+    if not checkpoint.exists():
+        print("fitting stage I of single_object at fast (once) ...", flush=True)
+        reconstruct(session, out, preset="fast", stage="radiance", overwrite=True)
+    field, _ = load_checkpoint(Path(checkpoint))
+    with Session.open(session) as s:
+        poses, _ = test_views(s)
+        optics = SensorOptics.from_session(s)
+    g = field.gaussians
+    keep = torch.randperm(len(g), generator=torch.Generator().manual_seed(seed))[:n]
+    keep = keep.sort().values
+    K = torch.tensor(optics.K * width / optics.width, dtype=torch.float32)
+    K[2, 2] = 1
+    view = torch.as_tensor(np.linalg.inv(poses[0]), dtype=torch.float32)
+    colors = torch.rand(len(keep), channels, generator=torch.Generator().manual_seed(seed))
+    params = [
+        g.means.detach()[keep],
+        g.quats.detach()[keep],
+        g.log_scales.detach()[keep],
+        g.opacities.detach()[keep],
+        colors,
+    ]
+    return params, Camera(view, K, width, height)
+
+
+def synthetic(n: int, width: int, height: int, channels: int, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    half = n // 2
+    on_surface = torch.nn.functional.normalize(torch.randn(half, 3, generator=g), dim=1) * 0.5
+    around = (torch.rand(n - half, 3, generator=g) - 0.5) * torch.tensor([2.4, 1.8, 1.6])
+    means = torch.cat([on_surface, around])
+    quats = torch.randn(n, 4, generator=g)
+    f = 0.72 * width  # the DAVIS346's lens: about 70 degrees across
+    distance = 1.4
+    pixel = distance / f
+    log_scales = math.log(1.5 * pixel) + 0.5 * torch.randn(n, 3, generator=g)
+    log_scales[:half, 2] -= 2.0  # the surface's Gaussians are flat
+    opacities = 0.05 + 0.9 * torch.rand(n, generator=g)
+    features = torch.rand(n, channels, generator=g)
+    view = torch.eye(4)
+    view[2, 3] = distance
+    K = torch.tensor([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]])
+    params = [means, quats, log_scales, opacities, features]
+    return params, Camera(view, K, width, height)
+
+
+def time_backend(backend, params, cam, repeats, device="cpu"):
+    """Median forward and forward+backward seconds, and the image's mean alpha."""
+    params = [p.to(device).requires_grad_(True) for p in params]
+    cam = Camera(cam.viewmat.to(device), cam.K.to(device), cam.width, cam.height)
+    weights = None
+    fwd, total = [], []
+    for i in range(repeats + 1):  # the first compiles (or loads the cached build)
+        sync(device)
+        start = time.perf_counter()
+        means, quats, log_scales, opacities, features = params
+        r = rasterize(means, quats, log_scales.exp(), opacities, features, cam, backend=backend)
+        sync(device)
+        mid = time.perf_counter()
+        maps = torch.cat([r.color, r.depth[..., None], r.alpha[..., None], r.normal], -1)
+        if weights is None:
+            g = torch.Generator().manual_seed(1)
+            weights = torch.rand(maps.shape, generator=g).to(device)
+        (maps * weights).sum().backward()
+        sync(device)
+        end = time.perf_counter()
+        for p in params:
+            p.grad = None
+        if i:
+            fwd.append(mid - start)
+            total.append(end - start)
+    return statistics.median(fwd), statistics.median(total), float(r.alpha.mean())
+
+
+def sync(device: str) -> None:
+    if device == "cuda":
+        torch.cuda.synchronize()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--quick", action="store_true", help="the 173 x 130 rows only")
+    parser.add_argument("--repeats", type=int, default=5, help="timed runs per figure")
+    args = parser.parse_args()
+    configs = [c for c in CONFIGS if not args.quick or c[1] == 173]
+    threads_before = torch.get_num_threads()
+    gsplat = False
+    if torch.cuda.is_available():
+        from evcap.recon import _raster_gsplat
+
+        gsplat = _raster_gsplat.available()
+    rows = []
+    for field, width, height, n, channels in configs:
+        params, cam = (trained if field == "trained" else synthetic)(n, width, height, channels)
+        n = len(params[0])
+        # the torch backend takes seconds a view at the largest size: fewer repeats there
+        repeats = args.repeats if width * height * n < 1e10 else 2
+        runs = [("cpu", "cpu", t) for t in (1, 2)] + [("torch", "cpu", t) for t in (1, 2)]
+        runs += [("gsplat", "cuda", None)] if gsplat else []
+        for backend, device, threads in runs:
+            if threads:
+                torch.set_num_threads(threads)
+            fwd, total, alpha = time_backend(backend, params, cam, repeats, device)
+            rows.append(
+                {
+                    "field": field,
+                    "width": width,
+                    "height": height,
+                    "gaussians": n,
+                    "channels": channels,
+                    "backend": backend,
+                    "threads": threads,
+                    "forward_ms": 1000 * fwd,
+                    "forward_backward_ms": 1000 * total,
+                    "mean_alpha": alpha,
+                }
+            )
+            print(
+                f"{field:>9} {width} x {height}, {n:>7,} Gaussians, {channels:>2} channels, "
+                f"{backend:>6} on {threads or device}: forward {1000 * fwd:8.1f} ms, "
+                f"forward+backward {1000 * total:8.1f} ms",
+                flush=True,
+            )
+    torch.set_num_threads(threads_before)
+
+    def total(config, backend, threads):
+        return next(
+            r["forward_backward_ms"]
+            for r in rows
+            if (r["field"], r["width"], r["height"], r["gaussians"], r["channels"]) == config
+            and r["backend"] == backend
+            and r["threads"] == threads
+        )
+
+    figures: dict = {}
+    for row in rows:
+        if row["backend"] != "cpu" or row["threads"] != 2:
+            continue
+        config = tuple(row[k] for k in ("field", "width", "height", "gaussians", "channels"))
+        field, width, height, n, channels = config
+        name = f"{field}_{width}x{height}_{round(n / 1000)}k_{channels}ch"
+        figures[f"{name}_cpu_vs_torch_2_threads"] = total(config, "torch", 2) / total(
+            config, "cpu", 2
+        )
+        figures[f"{name}_cpu_2_vs_1_thread"] = total(config, "cpu", 1) / total(config, "cpu", 2)
+    report("rasterizer", {**figures, "rows": rows})
+
+
+if __name__ == "__main__":
+    main()
