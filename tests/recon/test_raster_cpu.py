@@ -189,23 +189,25 @@ def splats(n, width, height, seed, dense=False):
 )
 def test_compositing_matches_the_per_pixel_reference(channels, width, height, dense):
     means2d, conics, opac, depths, cov2d = splats(24, width, height, channels, dense)
-    values = torch.rand(24, channels, dtype=F64, generator=torch.Generator().manual_seed(5))
-    leaves = [t.requires_grad_(True) for t in (means2d, conics, opac, values)]
+    g = torch.Generator().manual_seed(5)
+    features = torch.rand(24, channels, dtype=F64, generator=g)
+    normals = torch.rand(24, 3, dtype=F64, generator=g)
+    leaves = [t.requires_grad_(True) for t in (means2d, conics, opac, features, depths, normals)]
     valid = torch.ones(24, dtype=torch.bool)
     tiles = _raster_cpu.intersect(means2d, cov2d, valid, opac, depths, width, height)
     out, alpha = _raster_cpu._Composite.apply(*leaves, tiles)
     order = [int(i) for i in torch.argsort(depths)]
-    ref_out, ref_alpha = composite_reference(*leaves, order, width, height)
-    torch.testing.assert_close(out.reshape(height, width, channels), ref_out, rtol=1e-9, atol=1e-12)
+    values = torch.cat([features, depths[:, None], normals], 1)
+    ref_out, ref_alpha = composite_reference(*leaves[:3], values, order, width, height)
+    out = out.reshape(height, width, channels + 4)
+    torch.testing.assert_close(out, ref_out, rtol=1e-9, atol=1e-12)
     torch.testing.assert_close(alpha.reshape(height, width), ref_alpha, rtol=1e-9, atol=1e-12)
     if dense:
         assert ref_alpha.max() > 1 - 2e-4
     g = torch.Generator().manual_seed(6)
     w_out = torch.randn(ref_out.shape, generator=g, dtype=F64)
     w_alpha = torch.randn(ref_alpha.shape, generator=g, dtype=F64)
-    g_cpu = torch.autograd.grad(
-        (out * w_out.reshape(-1, channels)).sum() + (alpha * w_alpha.ravel()).sum(), leaves
-    )
+    g_cpu = torch.autograd.grad((out * w_out).sum() + (alpha * w_alpha.ravel()).sum(), leaves)
     g_ref = torch.autograd.grad((ref_out * w_out).sum() + (ref_alpha * w_alpha).sum(), leaves)
     for a, b in zip(g_cpu, g_ref, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-10 * max(1.0, b.abs().max()))
