@@ -8,7 +8,8 @@ pinhole at half scale) and at the sensor's 346 x 260; 5k of them drawn at random
 rows. The method's scale (100k Gaussians at 800 x 800) has no such fit here: a synthetic field
 stands for it, half flattened on a sphere's surface, half through the volume around it, about
 1.5 render pixels across, opacities 0.05 to 0.95. The backward pass takes a fixed random
-weighting of every output (color, depth, alpha, normals).
+weighting of every output (color, depth, alpha, normals). The runs take turns, round after
+round, and each figure is the fastest of its rounds.
 
     .venv/bin/python bench/rasterizer.py [--quick] [--repeats N]
 """
@@ -94,32 +95,22 @@ def synthetic(n: int, width: int, height: int, channels: int, seed: int = 0):
     return params, Camera(view, K, width, height)
 
 
-def time_backend(backend, params, cam, repeats, device="cpu"):
-    """Median forward and forward+backward seconds, and the image's mean alpha."""
-    params = [p.to(device).requires_grad_(True) for p in params]
+def time_once(backend, params, cam, weights, device="cpu"):
+    """(forward, forward+backward) seconds of one view, and its mean alpha; ``weights`` [H, W,
+    D + 5] weigh the outputs in the loss the backward pass starts from."""
+    params = [p.detach().to(device).requires_grad_(True) for p in params]
     cam = Camera(cam.viewmat.to(device), cam.K.to(device), cam.width, cam.height)
-    weights = None
-    fwd, total = [], []
-    for i in range(repeats + 1):  # the first compiles (or loads the cached build)
-        sync(device)
-        start = time.perf_counter()
-        means, quats, log_scales, opacities, features = params
-        r = rasterize(means, quats, log_scales.exp(), opacities, features, cam, backend=backend)
-        sync(device)
-        mid = time.perf_counter()
-        maps = torch.cat([r.color, r.depth[..., None], r.alpha[..., None], r.normal], -1)
-        if weights is None:
-            g = torch.Generator().manual_seed(1)
-            weights = torch.rand(maps.shape, generator=g).to(device)
-        (maps * weights).sum().backward()
-        sync(device)
-        end = time.perf_counter()
-        for p in params:
-            p.grad = None
-        if i:
-            fwd.append(mid - start)
-            total.append(end - start)
-    return statistics.median(fwd), statistics.median(total), float(r.alpha.mean())
+    weights = weights.to(device)
+    means, quats, log_scales, opacities, features = params
+    sync(device)
+    start = time.perf_counter()
+    r = rasterize(means, quats, log_scales.exp(), opacities, features, cam, backend=backend)
+    sync(device)
+    mid = time.perf_counter()
+    maps = torch.cat([r.color, r.depth[..., None], r.alpha[..., None], r.normal], -1)
+    (maps * weights).sum().backward()
+    sync(device)
+    return mid - start, time.perf_counter() - start, float(r.alpha.detach().mean())
 
 
 def sync(device: str) -> None:
@@ -130,7 +121,7 @@ def sync(device: str) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--quick", action="store_true", help="the 173 x 130 rows only")
-    parser.add_argument("--repeats", type=int, default=5, help="timed runs per figure")
+    parser.add_argument("--repeats", type=int, default=10, help="timed rounds per figure")
     args = parser.parse_args()
     configs = [c for c in CONFIGS if not args.quick or c[1] == 173]
     threads_before = torch.get_num_threads()
@@ -144,13 +135,25 @@ def main() -> None:
         params, cam = (trained if field == "trained" else synthetic)(n, width, height, channels)
         n = len(params[0])
         # the torch backend takes seconds a view at the largest size: fewer repeats there
-        repeats = args.repeats if width * height * n < 1e10 else 2
+        repeats = args.repeats if width * height * n < 1e10 else 3
         runs = [("cpu", "cpu", t) for t in (1, 2)] + [("torch", "cpu", t) for t in (1, 2)]
         runs += [("gsplat", "cuda", None)] if gsplat else []
-        for backend, device, threads in runs:
-            if threads:
-                torch.set_num_threads(threads)
-            fwd, total, alpha = time_backend(backend, params, cam, repeats, device)
+        times: dict = {run: [] for run in runs}
+        g = torch.Generator().manual_seed(1)
+        weights = torch.rand(height, width, channels + 5, generator=g)
+        # round by round, so that a slow moment of the machine falls on every run alike;
+        # the first round compiles (or loads the cached build) and is not counted
+        for round_ in range(repeats + 1):
+            for run in runs:
+                backend, device, threads = run
+                if threads:
+                    torch.set_num_threads(threads)
+                fwd, total, alpha = time_once(backend, params, cam, weights, device)
+                if round_:
+                    times[run].append((fwd, total))
+        for (backend, device, threads), measured in times.items():
+            # the fastest of the rounds: the machine's noise only ever adds time
+            fwd, total = (min(m[i] for m in measured) for i in (0, 1))
             rows.append(
                 {
                     "field": field,
@@ -162,6 +165,7 @@ def main() -> None:
                     "threads": threads,
                     "forward_ms": 1000 * fwd,
                     "forward_backward_ms": 1000 * total,
+                    "median_forward_backward_ms": 1000 * statistics.median(m[1] for m in measured),
                     "mean_alpha": alpha,
                 }
             )
@@ -173,9 +177,9 @@ def main() -> None:
             )
     torch.set_num_threads(threads_before)
 
-    def total(config, backend, threads):
+    def timing(config, backend, threads, key):
         return next(
-            r["forward_backward_ms"]
+            r[key]
             for r in rows
             if (r["field"], r["width"], r["height"], r["gaussians"], r["channels"]) == config
             and r["backend"] == backend
@@ -189,10 +193,10 @@ def main() -> None:
         config = tuple(row[k] for k in ("field", "width", "height", "gaussians", "channels"))
         field, width, height, n, channels = config
         name = f"{field}_{width}x{height}_{round(n / 1000)}k_{channels}ch"
-        figures[f"{name}_cpu_vs_torch_2_threads"] = total(config, "torch", 2) / total(
-            config, "cpu", 2
-        )
-        figures[f"{name}_cpu_2_vs_1_thread"] = total(config, "cpu", 1) / total(config, "cpu", 2)
+        for key, label in (("forward_backward_ms", ""), ("median_forward_backward_ms", "_median")):
+            torch_ms, cpu_ms = timing(config, "torch", 2, key), timing(config, "cpu", 2, key)
+            figures[f"{name}_cpu_vs_torch_2_threads{label}"] = torch_ms / cpu_ms
+            figures[f"{name}_cpu_2_vs_1_thread{label}"] = timing(config, "cpu", 1, key) / cpu_ms
     report("rasterizer", {**figures, "rows": rows})
 
 

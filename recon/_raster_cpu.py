@@ -671,62 +671,81 @@ def _sum_rows(gaussian_start, slots, grads, out):
                 out[g, c] += grads[slots[j], c]
 
 
-# -- autograd --------------------------------------------------------------------------------
+# -- the stages, on arrays ---------------------------------------------------------------------
 
 
 def _np(x: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().cpu().numpy(), dtype=np.float64)
 
 
-def _back(x: np.ndarray, like: torch.Tensor) -> torch.Tensor:
-    return torch.from_numpy(x).to(dtype=like.dtype, device=like.device)
+def camera_arrays(camera: Camera, near: float) -> tuple:
+    """What the projection kernels take of a camera."""
+    view = _np(camera.viewmat)
+    K = _np(camera.K)
+    return (
+        view[:3, :3].copy(),
+        view[:3, 3].copy(),
+        K[0, 0],
+        K[1, 1],
+        K[0, 2],
+        K[1, 2],
+        camera.width,
+        camera.height,
+        near,
+    )
 
 
-def _grad(v: torch.Tensor | None, shape: tuple[int, ...]) -> np.ndarray:
-    return np.zeros(shape) if v is None else _np(v)
+@dataclass
+class Projection:
+    """Each Gaussian in the image: float64 arrays."""
+
+    means2d: np.ndarray  # [N, 2] pixels
+    conics: np.ndarray  # [N, 3] inverse 2D covariance (a, b, c)
+    cov2d: np.ndarray  # [N, 3] (xx, xy, yy)
+    depths: np.ndarray  # [N] camera z
+    normals: np.ndarray  # [N, 3] camera frame, facing the camera
+    valid: np.ndarray  # [N] bool: in front of the camera with a proper footprint
 
 
-class _Project(torch.autograd.Function):
-    """(means, quats, scales, viewmat, K) -> (means2d, conics, depths, camera-frame normals;
-    cov2d and valid, not differentiable)."""
+def project(means: np.ndarray, quats: np.ndarray, scales: np.ndarray, view: tuple) -> Projection:
+    return Projection(*_project_fwd(means, quats, scales, view))
 
-    @staticmethod
-    def forward(ctx, means, quats, scales, viewmat, K, width, height, near):
-        view = _np(viewmat)
-        fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
-        camera = (view[:3, :3].copy(), view[:3, 3].copy(), fx, fy, cx, cy, width, height, near)
-        arrays = (_np(means), _np(quats), _np(scales), camera)
-        means2d, conics, cov2d, depths, normals, valid = _project_fwd(*arrays)
-        ctx.arrays, ctx.valid, ctx.conics = arrays, valid, conics
-        ctx.like = (means, quats, scales, viewmat)
-        fixed = (_back(cov2d, means), torch.from_numpy(valid).to(means.device))
-        ctx.mark_non_differentiable(*fixed)
-        return tuple(_back(x, means) for x in (means2d, conics, depths, normals)) + fixed
 
-    @staticmethod
-    def backward(ctx, v_means2d, v_conics, v_depths, v_normals, _v_cov, _v_valid):
-        n = ctx.valid.shape[0]
-        v_out = _project_bwd(
-            *ctx.arrays,
-            ctx.conics,
-            ctx.valid,
-            _grad(v_means2d, (n, 2)),
-            _grad(v_conics, (n, 3)),
-            _grad(v_depths, (n,)),
-            _grad(v_normals, (n, 3)),
-        )
-        means, quats, scales, viewmat = ctx.like
-        grad_view = None
-        if ctx.needs_input_grad[3]:
-            total = v_out[3].sum(0)
-            g = np.zeros((4, 4))
-            g[:3, :3] = total[:9].reshape(3, 3)
-            g[:3, 3] = total[9:]
-            grad_view = _back(g, viewmat)
-        v_means, v_quats, v_scales = (
-            _back(v, x) for v, x in zip(v_out[:3], ctx.like[:3], strict=True)
-        )
-        return v_means, v_quats, v_scales, grad_view, None, None, None, None
+def project_backward(
+    means: np.ndarray,
+    quats: np.ndarray,
+    scales: np.ndarray,
+    view: tuple,
+    projection: Projection,
+    v_means2d: np.ndarray,
+    v_conics: np.ndarray,
+    v_depths: np.ndarray,
+    v_normals: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """d/d(means, quats, scales) and each Gaussian's part of d/d(viewmat) [N, 12] (summed by
+    view_gradient) from d/d(the projection's outputs)."""
+    v_means, v_quats, v_scales, per = _project_bwd(
+        means,
+        quats,
+        scales,
+        view,
+        projection.conics,
+        projection.valid,
+        v_means2d,
+        v_conics,
+        v_depths,
+        v_normals,
+    )
+    return v_means, v_quats, v_scales, per
+
+
+def view_gradient(per_gaussian: np.ndarray) -> np.ndarray:
+    """[4, 4] d/d(viewmat) from project_backward's [N, 12] per Gaussian."""
+    total = per_gaussian.sum(0)
+    v_view = np.zeros((4, 4))
+    v_view[:3, :3] = total[:9].reshape(3, 3)
+    v_view[:3, 3] = total[9:]
+    return v_view
 
 
 @dataclass
@@ -760,72 +779,145 @@ class Tiles:
         )
 
 
-def intersect(
-    means2d: torch.Tensor,
-    cov2d: torch.Tensor,
-    valid: torch.Tensor,
-    opacities: torch.Tensor,
-    depths: torch.Tensor,
-    width: int,
-    height: int,
-) -> Tiles:
-    box = np.empty((len(means2d), 4), np.int64)
-    _boxes(_np(means2d), _np(cov2d), valid.cpu().numpy(), _np(opacities), width, height, box)
-    order = np.argsort(_np(depths))  # the one depth sort
+def intersect(projection: Projection, opacities: np.ndarray, width: int, height: int) -> Tiles:
+    p = projection
+    box = np.empty((len(p.means2d), 4), np.int64)
+    _boxes(p.means2d, p.cov2d, p.valid, opacities, width, height, box)
+    order = np.argsort(p.depths)  # the one depth sort
     return Tiles(width, height, box, *_bucket(box, order, width, height, TILE_W, TILE_H))
 
 
-def _columns(parts: list[torch.Tensor], width: int) -> np.ndarray:
-    """[N, width] float64: the tensors' columns side by side, zeros after them."""
-    out = np.zeros((len(parts[0]), width))
-    at = 0
-    for part in parts:
-        part = part.detach().cpu().reshape(len(part), -1).numpy()
-        out[:, at : at + part.shape[1]] = part
-        at += part.shape[1]
-    return out
+@dataclass
+class Composited:
+    """A compositing's result, and what its backward pass takes."""
+
+    out: np.ndarray  # [H * W, C] the sum of w values; C padded to a multiple of LANES
+    final_t: np.ndarray  # [H * W] transmittance left
+    last: np.ndarray  # [H * W] how many entries of its row's list each pixel went through
+    terms: np.ndarray  # [N, 11] the splats' terms (_splat_terms)
+    values: np.ndarray  # [N, C]
 
 
-class _Composite(torch.autograd.Function):
-    """(means2d, conics, opacities, features [N, D], depths, normals [N, 3]) -> (the sum of
-    w (features, depth, normal) [H * W, D + 4], alpha [H * W])."""
+def composite(
+    tiles: Tiles,
+    means2d: np.ndarray,
+    conics: np.ndarray,
+    opacities: np.ndarray,
+    values: np.ndarray,
+) -> Composited:
+    """Alpha-composite ``values`` [N, C] front to back."""
+    n, channels = values.shape
+    padded = np.zeros((n, channels + -channels % LANES))
+    padded[:, :channels] = values
+    splats = np.concatenate([means2d, conics, opacities[:, None]], 1)
+    terms = _splat_terms(splats)
+    pixels = tiles.width * tiles.height
+    out = np.empty((pixels, padded.shape[1]))
+    final_t, last = np.empty(pixels), np.empty(pixels, np.int64)
+    _composite_fwd(tiles.layout(), terms, padded, out, final_t, last)
+    return Composited(out, final_t, last, terms, padded)
+
+
+def composite_backward(
+    tiles: Tiles, result: Composited, v_out: np.ndarray, v_alpha: np.ndarray
+) -> np.ndarray:
+    """[N, 6 + C]: d/d(means2d, conics, opacity, values) from d/d(out [H * W, C], alpha)."""
+    padded = np.zeros((len(v_out), result.values.shape[1]))
+    padded[:, : v_out.shape[1]] = v_out
+    grads = np.empty((len(tiles.owner), SPLAT + padded.shape[1]))
+    _composite_bwd(
+        tiles.layout(),
+        result.terms,
+        result.values,
+        result.final_t,
+        result.last,
+        padded,
+        v_alpha,
+        grads,
+    )
+    per = np.empty((len(result.terms), grads.shape[1]))
+    _sum_rows(tiles.gaussian_start, tiles.slots, grads, per)
+    return per[:, : SPLAT + v_out.shape[1]]
+
+
+# -- autograd --------------------------------------------------------------------------------
+
+DEPTH_ALPHA_MIN = 1e-10  # expected depth = sum w z / max(alpha, this)
+
+
+class _Rasterize(torch.autograd.Function):
+    """(means, quats, scales, opacities, features, viewmat, means2d) -> (color [H * W, D],
+    expected depth, alpha [H * W], normal [H * W, 3]). ``means2d`` holds the projected centres
+    and takes no part in the forward pass: its gradient is the screen-space one that
+    densification reads."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, features, depths, normals, tiles: Tiles):
-        pixels = tiles.width * tiles.height
-        channels = features.shape[1] + 4
-        terms = _splat_terms(_columns([means2d, conics, opacities], SPLAT))
-        vals = _columns([features, depths, normals], channels + -channels % LANES)
-        out = np.empty((pixels, vals.shape[1]))
-        final_t, last = np.empty(pixels), np.empty(pixels, np.int64)
-        _composite_fwd(tiles.layout(), terms, vals, out, final_t, last)
-        ctx.arrays, ctx.tiles, ctx.saved = (terms, vals), tiles, (final_t, last)
-        ctx.like = (means2d, conics, opacities, features, depths, normals)
-        return _back(out[:, :channels], features), _back(1 - final_t, features)
-
-    @staticmethod
-    def backward(ctx, v_out, v_alpha):
-        tiles, (final_t, last) = ctx.tiles, ctx.saved
-        pixels = tiles.width * tiles.height
-        terms, vals = ctx.arrays
-        v_out = _columns([v_out], vals.shape[1]) if v_out is not None else None
-        v_out = np.zeros((pixels, vals.shape[1])) if v_out is None else v_out
-        v_alpha = _grad(v_alpha, (pixels,))
-        grads = np.empty((len(tiles.owner), SPLAT + vals.shape[1]))
-        _composite_bwd(tiles.layout(), terms, vals, final_t, last, v_out, v_alpha, grads)
-        per = np.empty((len(terms), grads.shape[1]))
-        _sum_rows(tiles.gaussian_start, tiles.slots, grads, per)
-        means2d, conics, opacities, features, depths, normals = ctx.like
-        d = SPLAT + features.shape[1]
+    def forward(ctx, means, quats, scales, opacities, features, viewmat, means2d, state):
+        view, arrays, projection, tiles = state
+        p = projection
+        D = features.shape[1]
+        values = np.concatenate([_np(features), p.depths[:, None], p.normals], 1)
+        result = composite(tiles, p.means2d, p.conics, arrays[3], values)
+        alpha = 1 - result.final_t
+        depth = result.out[:, D] / np.maximum(alpha, DEPTH_ALPHA_MIN)
+        ctx.state = (view, arrays[:3], projection, tiles, result, alpha, D)
+        ctx.like = (means, quats, scales, opacities, features, viewmat, means2d)
+        like = features
         return (
-            _back(per[:, 0:2], means2d),
-            _back(per[:, 2:5], conics),
-            _back(per[:, 5], opacities),
-            _back(per[:, SPLAT:d], features),
-            _back(per[:, d], depths),
-            _back(per[:, d + 1 : d + 4], normals),
+            _back(result.out[:, :D], like),
+            _back(depth, like),
+            _back(alpha, like),
+            _back(result.out[:, D + 1 : D + 4], like),
+        )
+
+    @staticmethod
+    def backward(ctx, v_color, v_depth, v_alpha, v_normal):
+        view, (means, quats, scales), projection, tiles, result, alpha, D = ctx.state
+        pixels = len(alpha)
+        v_out = np.zeros((pixels, D + 4))
+        v_alpha = _grad(v_alpha, (pixels,))
+        if v_color is not None:
+            v_out[:, :D] = _np(v_color)
+        if v_normal is not None:
+            v_out[:, D + 1 :] = _np(v_normal)
+        if v_depth is not None:
+            v_depth = _np(v_depth)
+            a = np.maximum(alpha, DEPTH_ALPHA_MIN)
+            v_out[:, D] = v_depth / a
+            v_alpha -= np.where(alpha >= DEPTH_ALPHA_MIN, v_depth * result.out[:, D] / a**2, 0)
+        per = composite_backward(tiles, result, v_out, v_alpha)
+        v_means, v_quats, v_scales, v_view = project_backward(
+            means,
+            quats,
+            scales,
+            view,
+            projection,
+            per[:, 0:2],
+            per[:, 2:5],
+            per[:, SPLAT + D],
+            per[:, SPLAT + D + 1 :],
+        )
+        like = ctx.like
+        return (
+            _back(v_means, like[0]),
+            _back(v_quats, like[1]),
+            _back(v_scales, like[2]),
+            _back(per[:, 5], like[3]),
+            _back(per[:, SPLAT : SPLAT + D], like[4]),
+            _back(view_gradient(v_view), like[5]) if ctx.needs_input_grad[5] else None,
+            _back(per[:, 0:2], like[6]),
             None,
         )
+
+
+def _back(x: np.ndarray, like: torch.Tensor) -> torch.Tensor:
+    """x as a tensor of ``like``'s dtype and device (one copy)."""
+    dtype = np.float32 if like.dtype == torch.float32 else np.float64
+    return torch.from_numpy(np.ascontiguousarray(x, dtype=dtype)).to(like.device, like.dtype)
+
+
+def _grad(v: torch.Tensor | None, shape: tuple[int, ...]) -> np.ndarray:
+    return np.zeros(shape) if v is None else _np(v)
 
 
 def _follow_torch_threads() -> None:
@@ -847,19 +939,27 @@ def rasterize_cpu(
 ) -> Render:
     _follow_torch_threads()
     W, H, D = camera.width, camera.height, features.shape[1]
-    means2d, conics, depths, normals, cov2d, valid = _Project.apply(
-        means, quats, scales, camera.viewmat, camera.K, W, H, near
+    view = camera_arrays(camera, near)
+    arrays = [_np(x) for x in (means, quats, scales, opacities)]
+    projection = project(*arrays[:3], view)
+    tiles = intersect(projection, arrays[3], W, H)
+    # a leaf of its own: the gradient of the projected centres (densification reads it)
+    means2d = _back(projection.means2d, means).requires_grad_(means.requires_grad)
+    color, depth, alpha, normal = _Rasterize.apply(
+        means,
+        quats,
+        scales,
+        opacities,
+        features,
+        camera.viewmat,
+        means2d,
+        (view, arrays, projection, tiles),
     )
-    if means2d.requires_grad:
-        means2d.retain_grad()
-    tiles = intersect(means2d, cov2d, valid, opacities, depths, W, H)
-    out, alpha = _Composite.apply(means2d, conics, opacities, features, depths, normals, tiles)
-    depth = out[:, D] / alpha.clamp(min=1e-10)
     return Render(
-        out[:, :D].reshape(H, W, D),
+        color.reshape(H, W, D),
         depth.reshape(H, W),
         alpha.reshape(H, W),
-        out[:, D + 1 :].reshape(H, W, 3),
+        normal.reshape(H, W, 3),
         means2d,
         torch.from_numpy(tiles.visible).to(means.device),
     )

@@ -4,6 +4,7 @@ channel counts, image sizes that are not multiples of the tile, and the hard cas
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -127,35 +128,37 @@ def test_float32_at_the_fast_size_matches_torch():
 
 @pytest.mark.parametrize("case", CASES)
 def test_projection_matches_torch(case):
+    """The compiled projection and its hand-written backward pass against autograd through
+    the torch backend's projection."""
     means, quats, log_scales, _, _ = scene(case)
     cam = camera(37, 29)
     cam.viewmat.requires_grad_(True)
     scales = log_scales.exp()
-    proj = _raster_torch.project(means, quats, scales, cam, 0.01)
-    normals = camera_normals(quats, scales, means, cam)
-    m2, conics, depths, n_c, cov2d, valid = _raster_cpu._Project.apply(
-        means, quats, scales, cam.viewmat, cam.K, 37, 29, 0.01
-    )
-    assert torch.equal(valid, proj.valid)
+    ref = _raster_torch.project(means, quats, scales, cam, 0.01)
+    ref_normals = camera_normals(quats, scales, means, cam)
+    view = _raster_cpu.camera_arrays(cam, 0.01)
+    arrays = [t.detach().numpy() for t in (means, quats, scales)]
+    p = _raster_cpu.project(*arrays, view)
+    assert (p.valid == ref.valid.numpy()).all()
     if case == "behind":
-        assert not valid.all()
-    v = valid[:, None]
-    for a, b in ((m2, proj.means2d), (depths, proj.depths), (n_c, normals)):
-        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
-    for a, b in ((conics, proj.conics), (cov2d, proj.cov2d)):
-        torch.testing.assert_close(a * v, b * v, rtol=1e-9, atol=1e-12)
+        assert not p.valid.all()
+    v = torch.from_numpy(p.valid[:, None])
+    for a, b in ((p.means2d, ref.means2d), (p.depths, ref.depths), (p.normals, ref_normals)):
+        torch.testing.assert_close(torch.from_numpy(a), b.detach(), rtol=1e-12, atol=1e-12)
+    for a, b in ((p.conics, ref.conics), (p.cov2d, ref.cov2d)):
+        torch.testing.assert_close(torch.from_numpy(a) * v, b.detach() * v, rtol=1e-9, atol=1e-12)
     g = torch.Generator().manual_seed(3)
-    w = [torch.randn(t.shape, generator=g, dtype=F64) for t in (m2, conics, depths, n_c)]
+    w = [torch.randn(t.shape, generator=g, dtype=F64) for t in (p.means2d, p.conics, p.depths)]
     w[1] = w[1] * v  # the conics of invalid Gaussians are never used
-    inputs = [means, quats, log_scales, cam.viewmat]
-
-    def loss(outs):
-        return sum((o * wi).sum() for o, wi in zip(outs, w, strict=True))
-
-    g_cpu = torch.autograd.grad(loss((m2, conics, depths, n_c)), inputs, retain_graph=True)
-    g_ref = torch.autograd.grad(loss((proj.means2d, proj.conics, proj.depths, normals)), inputs)
-    for a, b in zip(g_cpu, g_ref, strict=True):
-        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-10 * max(1.0, b.abs().max()))
+    w.append(torch.randn(p.normals.shape, generator=g, dtype=F64))
+    outs = (ref.means2d, ref.conics, ref.depths, ref_normals)
+    loss = sum((o * wi).sum() for o, wi in zip(outs, w, strict=True))
+    expected = torch.autograd.grad(loss, [means, quats, scales, cam.viewmat])
+    got = list(_raster_cpu.project_backward(*arrays, view, p, *(wi.numpy() for wi in w)))
+    got[3] = _raster_cpu.view_gradient(got[3])
+    for name, a, b in zip(("means", "quats", "scales", "viewmat"), got, expected, strict=True):
+        tol = 1e-10 * max(1.0, b.abs().max())
+        torch.testing.assert_close(torch.from_numpy(a), b, rtol=1e-8, atol=tol, msg=name)
 
 
 def splats(n, width, height, seed, dense=False):
@@ -188,29 +191,35 @@ def splats(n, width, height, seed, dense=False):
     [(1, 19, 13, False), (3, 33, 17, False), (10, 17, 18, False), (4, 21, 9, True)],
 )
 def test_compositing_matches_the_per_pixel_reference(channels, width, height, dense):
+    """The compiled compositing and its hand-written backward pass against autograd through
+    the per-pixel reference, on random 2D splats."""
     means2d, conics, opac, depths, cov2d = splats(24, width, height, channels, dense)
-    g = torch.Generator().manual_seed(5)
-    features = torch.rand(24, channels, dtype=F64, generator=g)
-    normals = torch.rand(24, 3, dtype=F64, generator=g)
-    leaves = [t.requires_grad_(True) for t in (means2d, conics, opac, features, depths, normals)]
-    valid = torch.ones(24, dtype=torch.bool)
-    tiles = _raster_cpu.intersect(means2d, cov2d, valid, opac, depths, width, height)
-    out, alpha = _raster_cpu._Composite.apply(*leaves, tiles)
+    values = torch.rand(24, channels, dtype=F64, generator=torch.Generator().manual_seed(5))
+    p = _raster_cpu.Projection(
+        means2d.numpy(), conics.numpy(), cov2d.numpy(), depths.numpy(), None, np.ones(24, bool)
+    )
+    tiles = _raster_cpu.intersect(p, opac.numpy(), width, height)
+    result = _raster_cpu.composite(tiles, p.means2d, p.conics, opac.numpy(), values.numpy())
+    out = torch.from_numpy(result.out[:, :channels]).reshape(height, width, channels)
+    alpha = torch.from_numpy(1 - result.final_t).reshape(height, width)
+    leaves = [t.requires_grad_(True) for t in (means2d, conics, opac, values)]
     order = [int(i) for i in torch.argsort(depths)]
-    values = torch.cat([features, depths[:, None], normals], 1)
-    ref_out, ref_alpha = composite_reference(*leaves[:3], values, order, width, height)
-    out = out.reshape(height, width, channels + 4)
-    torch.testing.assert_close(out, ref_out, rtol=1e-9, atol=1e-12)
-    torch.testing.assert_close(alpha.reshape(height, width), ref_alpha, rtol=1e-9, atol=1e-12)
+    ref_out, ref_alpha = composite_reference(*leaves, order, width, height)
+    torch.testing.assert_close(out, ref_out.detach(), rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(alpha, ref_alpha.detach(), rtol=1e-9, atol=1e-12)
     if dense:
         assert ref_alpha.max() > 1 - 2e-4
     g = torch.Generator().manual_seed(6)
     w_out = torch.randn(ref_out.shape, generator=g, dtype=F64)
     w_alpha = torch.randn(ref_alpha.shape, generator=g, dtype=F64)
-    g_cpu = torch.autograd.grad((out * w_out).sum() + (alpha * w_alpha.ravel()).sum(), leaves)
-    g_ref = torch.autograd.grad((ref_out * w_out).sum() + (ref_alpha * w_alpha).sum(), leaves)
-    for a, b in zip(g_cpu, g_ref, strict=True):
-        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-10 * max(1.0, b.abs().max()))
+    expected = torch.autograd.grad((ref_out * w_out).sum() + (ref_alpha * w_alpha).sum(), leaves)
+    per = _raster_cpu.composite_backward(
+        tiles, result, w_out.reshape(-1, channels).numpy(), w_alpha.ravel().numpy()
+    )
+    got = (per[:, 0:2], per[:, 2:5], per[:, 5], per[:, 6:])
+    for a, b in zip(got, expected, strict=True):
+        tol = 1e-10 * max(1.0, b.abs().max())
+        torch.testing.assert_close(torch.from_numpy(a), b, rtol=1e-8, atol=tol)
 
 
 def test_any_number_of_threads_gives_the_same_bits():
