@@ -3,13 +3,13 @@ threads (and gsplat on a CUDA GPU when there is one), side by side in one run.
 
 The Gaussians are what training renders: stage I of `evcap reconstruct --preset fast` on the
 single-object scene (14.5k Gaussians; fitted once, with the compiled backend, into
-bench/results/fields/), seen from a held-out view, at the fast preset's 173 x 130 (the sensor's
-pinhole at half scale) and at the sensor's 346 x 260; 5k of them drawn at random for the 5k
-rows. The method's scale (100k Gaussians at 800 x 800) has no such fit here: a synthetic field
-stands for it, half flattened on a sphere's surface, half through the volume around it, about
-1.5 render pixels across, opacities 0.05 to 0.95. The backward pass takes a fixed random
-weighting of every output (color, depth, alpha, normals). The runs take turns, round after
-round, and each figure is the fastest of its rounds.
+bench/results/fields/), seen from a held-out view, at 173 x 130 (the sensor's pinhole at half
+scale, where fast trained before this backend) and at the sensor's 346 x 260; 5k of them drawn
+at random for the 5k rows. The method's scale (100k Gaussians at 800 x 800) has no such fit
+here: a synthetic field stands for it, half flattened on a sphere's surface, half through the
+volume around it, about 1.5 render pixels across, opacities 0.05 to 0.95. The backward pass
+takes a fixed random weighting of every output (color, depth, alpha, normals). The runs take
+turns, round after round, and each figure is the fastest of its rounds.
 
     .venv/bin/python bench/rasterizer.py [--quick] [--repeats N]
 """

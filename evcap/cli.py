@@ -290,9 +290,12 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
             f"{result['material_seconds']:.0f} s (with {', '.join(on) or 'nothing else'}){stopped}"
         )
     keys = (
-        "render_psnr_cc",
-        "depth_abs_err",
+        "object_psnr_cc",
+        "object_psnr_constant",
         "normal_mae_deg",
+        "depth_rel_err",
+        "render_psnr_cc",
+        "blur_psnr",
         "base_color_psnr_cc",
         "roughness_mae",
         "pbr_render_psnr_cc",

@@ -256,9 +256,11 @@ def _reconstruct(ctx: DemoContext, stage: str) -> str:
     nan = float("nan")
     if stage == "radiance":
         return (
-            f"{m['gaussians']:,} Gaussians, {m['iterations']} steps; held-out views: "
-            f"PSNR {m.get('render_psnr_cc', nan):.1f} dB, normals "
-            f"{m.get('normal_mae_deg', nan):.1f} deg"
+            f"{m['gaussians']:,} Gaussians, {m['iterations']} steps; held-out views: object "
+            f"{m.get('object_psnr_cc', nan):.1f} dB (a constant color "
+            f"{m.get('object_psnr_constant', nan):.1f} dB), normals "
+            f"{m.get('normal_mae_deg', nan):.1f} deg, depth "
+            f"{100 * m.get('depth_rel_err', nan):.0f} % off"
         )
     return (
         f"{m['material_iterations']} steps; base color {m.get('base_color_psnr_cc', nan):.1f} dB, "

@@ -10,9 +10,11 @@ import torch.nn.functional as F
 from evcap.recon.material import CHANNELS, MaterialField
 from evcap.recon.metrics import (
     depth_abs_err,
+    depth_rel_err,
     image_metrics,
     lpips_if_available,
     normal_mae_deg,
+    object_metrics,
     srgb,
     surface_metrics,
 )
@@ -71,11 +73,14 @@ def test_views(session: Session) -> tuple[np.ndarray, dict[str, np.ndarray]]:
 
 def metrics(views: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -> dict[str, float | None]:
     out: dict[str, float | None] = {}
+    if "radiance" in truth and "depth" in truth:
+        out.update(object_metrics(views["radiance"], truth["radiance"], truth["depth"]))
     if "radiance" in truth:
         out.update(image_metrics(views["radiance"], truth["radiance"], "render"))
         out["lpips"] = lpips_if_available(srgb(views["radiance"]), srgb(truth["radiance"]))
     if "depth" in truth:
         out["depth_abs_err"] = depth_abs_err(views["depth"], truth["depth"])
+        out["depth_rel_err"] = depth_rel_err(views["depth"], truth["depth"])
     if "normal" in truth:
         out["normal_mae_deg"] = normal_mae_deg(views["normal"], truth["normal"])
     return out

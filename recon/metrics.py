@@ -5,6 +5,12 @@ reconstructions recover radiance only up to a gain per color channel, so papers 
 (EventNeRF, Robust e-NeRF) also report metrics after a per-channel affine color correction;
 here it is fitted by least squares on linear radiance over all test views at once, and the
 ``_cc`` metrics are taken after it. Both are reported.
+
+Whole-image figures reward a blur: most pixels are the environment, and a smooth guess at it
+scores well. The ``object_`` figures are taken on the object's pixels only (where the truth
+has a surface), beside what a render without the object reaches there: the best constant
+color. ``blur_psnr`` is what the truth itself, blurred, scores over the whole image; a
+render below it has not resolved anything finer than that blur.
 """
 
 from __future__ import annotations
@@ -25,13 +31,19 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
     return 10 * math.log10(1.0 / max(mse, 1e-12))
 
 
-def ssim(a: np.ndarray, b: np.ndarray) -> float:
-    """Mean SSIM (11 x 11 Gaussian window) of images [N, H, W, C] in [0, 1]."""
+def ssim_map(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """SSIM per pixel [N, H, W] (11 x 11 Gaussian window, mean over channels) of images
+    [N, H, W, C] in [0, 1]."""
     from kornia.metrics import ssim as kornia_ssim
 
     ta = torch.as_tensor(np.asarray(a, np.float32)).permute(0, 3, 1, 2)
     tb = torch.as_tensor(np.asarray(b, np.float32)).permute(0, 3, 1, 2)
-    return float(kornia_ssim(ta, tb, 11, max_val=1.0).mean())
+    return kornia_ssim(ta, tb, 11, max_val=1.0).mean(1).numpy()
+
+
+def ssim(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean SSIM (11 x 11 Gaussian window) of images [N, H, W, C] in [0, 1]."""
+    return float(ssim_map(a, b).mean())
 
 
 def fit_color_correction(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
@@ -58,10 +70,42 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray, prefix: str) -> dict[str, fl
     }
 
 
+BLUR_PX = 25  # the blur of blur_psnr: a Gaussian of this standard deviation, in sensor pixels
+
+
+def object_metrics(pred: np.ndarray, gt: np.ndarray, gt_depth: np.ndarray) -> dict[str, float]:
+    """Figures of linear renders [N, H, W, 3] on the object's pixels (``gt_depth`` > 0):
+    sRGB PSNR and mean SSIM after a color correction fitted there, and the PSNR of the best
+    single constant color over all views (the mean of the truth's sRGB there); over the whole
+    image, the PSNR of the truth blurred by BLUR_PX."""
+    import cv2
+
+    mask = gt_depth > 0
+    truth = srgb(gt)
+    blurred = np.stack([cv2.GaussianBlur(t, (0, 0), BLUR_PX) for t in truth.astype(np.float32)])
+    out = {"blur_psnr": psnr(blurred, truth)}
+    if not mask.any():
+        return out
+    cc = fit_color_correction(pred[mask], gt[mask])
+    corrected = srgb(pred * cc[:, 0] + cc[:, 1])
+    constant = truth[mask].mean(0)
+    out["object_psnr_cc"] = psnr(corrected[mask], truth[mask])
+    out["object_ssim_cc"] = float(ssim_map(corrected, truth)[mask].mean())
+    out["object_psnr_constant"] = psnr(np.broadcast_to(constant, truth[mask].shape), truth[mask])
+    return out
+
+
 def depth_abs_err(pred: np.ndarray, gt: np.ndarray) -> float:
     """Mean |depth error| (scene units) where the truth has a surface."""
     m = gt > 0
     return float(np.abs(pred[m] - gt[m]).mean()) if m.any() else float("nan")
+
+
+def depth_rel_err(pred: np.ndarray, gt: np.ndarray) -> float:
+    """Mean |depth error| as a share of the camera's distance to the surface, where the truth
+    has one."""
+    m = gt > 0
+    return float((np.abs(pred[m] - gt[m]) / gt[m]).mean()) if m.any() else float("nan")
 
 
 def normal_mae_deg(pred: np.ndarray, gt: np.ndarray) -> float:

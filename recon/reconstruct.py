@@ -31,7 +31,12 @@ from evcap.recon.export import (
     write_views,
 )
 from evcap.recon.material import environment_image, light_from_image, train_material
-from evcap.recon.metrics import fit_color_correction, image_metrics
+from evcap.recon.metrics import (
+    fit_color_correction,
+    image_metrics,
+    normal_mae_deg,
+    object_metrics,
+)
 from evcap.recon.radiance import load_training_data, train_radiance
 from evcap.recon.rasterize import pick_backend
 from evcap.recon.shading import mip_chain
@@ -256,7 +261,14 @@ def _stage_radiance(
 
     def evaluate(field) -> dict:
         views = render_views(field, poses[:HISTORY_VIEWS], data.optics, device)
-        return image_metrics(views["radiance"], truth["radiance"][:HISTORY_VIEWS], "render")
+        seen = {k: v[:HISTORY_VIEWS] for k, v in truth.items()}
+        out = image_metrics(views["radiance"], seen["radiance"], "render")
+        if "depth" in seen:
+            out.update(object_metrics(views["radiance"], seen["radiance"], seen["depth"]))
+            out.pop("blur_psnr")
+        if "normal" in seen:
+            out["normal_mae_deg"] = normal_mae_deg(views["normal"], seen["normal"])
+        return out
 
     path = resume_.state_path(out, "radiance")
     fit = train_radiance(

@@ -56,11 +56,20 @@ MAP_PX = 346  # displayed width of a calibration map
 
 # metrics.json keys: (readable name, unit, group); keys not listed show as they are
 METRICS = {
+    "object_psnr_cc": ("object PSNR, color-corrected", "dB", "stage I (radiance)"),
+    "object_psnr_constant": (
+        "object PSNR of the best constant color (no object)",
+        "dB",
+        "stage I (radiance)",
+    ),
+    "object_ssim_cc": ("object SSIM, color-corrected", "", "stage I (radiance)"),
     "render_psnr": ("render PSNR", "dB", "stage I (radiance)"),
     "render_ssim": ("render SSIM", "", "stage I (radiance)"),
     "render_psnr_cc": ("render PSNR, color-corrected", "dB", "stage I (radiance)"),
     "render_ssim_cc": ("render SSIM, color-corrected", "", "stage I (radiance)"),
+    "blur_psnr": ("PSNR of the truth blurred by 25 px (whole image)", "dB", "stage I (radiance)"),
     "lpips": ("LPIPS (AlexNet)", "", "stage I (radiance)"),
+    "depth_rel_err": ("depth error, share of the distance", "fraction", "stage I (radiance)"),
     "depth_abs_err": ("depth error, mean absolute", "scene units", "stage I (radiance)"),
     "radiance_normal_mae_deg": ("normal error, mean angle", "deg", "stage I (radiance)"),
     "iterations": ("iterations", "", "stage I (radiance)"),
@@ -752,8 +761,9 @@ def _progress_section(out: Path, metrics: dict) -> str:
         series = [
             Series(label, seconds, np.array([_float(h.get(key)) for h in history]), color, dashed)
             for key, label, color, dashed in (
-                ("render_psnr_cc", "PSNR, color-corrected", COLORS[0], False),
-                ("render_psnr", "PSNR", COLORS[1], True),
+                ("object_psnr_cc", "object, color-corrected", COLORS[0], False),
+                ("object_psnr_constant", "object: a constant color", COLORS[0], True),
+                ("render_psnr_cc", "whole image, color-corrected", COLORS[1], False),
             )
             if any(key in h for h in history)
         ]
@@ -761,7 +771,7 @@ def _progress_section(out: Path, metrics: dict) -> str:
             plots.append(
                 line_plot(
                     series,
-                    title="stage I: render PSNR on held-out views",
+                    title="stage I: PSNR on held-out views",
                     x_label="training time (s)",
                     y_label="PSNR (dB)",
                 )

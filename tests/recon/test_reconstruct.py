@@ -85,6 +85,11 @@ def test_writes_every_output(color_result):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics.keys() == result.keys()
     for key in (
+        "object_psnr_cc",
+        "object_ssim_cc",
+        "object_psnr_constant",
+        "blur_psnr",
+        "depth_rel_err",
         "render_psnr",
         "render_ssim",
         "render_psnr_cc",
@@ -111,7 +116,8 @@ def test_writes_every_output(color_result):
     history = metrics["history"]
     assert [h["step"] for h in history] == [5, 10, 15, 20, 25, 30]
     assert all(np.diff([h["seconds"] for h in history]) > 0)
-    assert all(np.isfinite(h["render_psnr_cc"]) for h in history)
+    for key in ("render_psnr_cc", "object_psnr_cc", "object_psnr_constant", "normal_mae_deg"):
+        assert all(np.isfinite(h[key]) for h in history), key
     # an isolated sphere: nothing to shadow it, nothing to bleed onto it
     assert metrics["effects"] == {
         "visibility": False,

@@ -129,6 +129,8 @@ def make_reconstruction(out: Path, session: Path) -> Path:
         "[material]\nedge_slice_ms = 10.0\n"
     )
     metrics = {
+        "object_psnr_cc": 19.25,
+        "object_psnr_constant": 17.0,
         "render_psnr": float("nan"),
         "render_psnr_cc": 21.5,
         "lpips": None,
@@ -209,7 +211,7 @@ def test_shows_what_it_found(page):
     assert "<th>truth</th>" in text and "<th>base color</th>" in text
     assert "the new light (--relight)" in text
     assert "stage I: training loss" in text and "stage II: training loss" in text
-    assert "render PSNR on held-out views" in text
+    assert "stage I: PSNR on held-out views" in text
     assert "nan" not in re.sub(r'src="[^"]*"', "", text).lower()
 
 
@@ -218,6 +220,7 @@ def test_nan_and_missing_metrics_show_na(page):
     assert re.search(r"<td>render PSNR</td><td[^>]*>n/a</td>", text)
     assert re.search(r"<td>LPIPS \(AlexNet\)</td><td[^>]*>n/a</td>", text)
     assert re.search(r"<td>render PSNR, color-corrected</td><td[^>]*>21.5</td>", text)
+    assert re.search(r"<td>object PSNR, color-corrected</td><td[^>]*>19.25</td>", text)
     assert "RMS reprojection error</th><td>n/a px" in text
     assert "visibility: off, tv: on" in text
 

@@ -1,0 +1,68 @@
+"""The object figures: what a render scores on the object's pixels, beside a constant color,
+and the blurred truth over the whole image."""
+
+import numpy as np
+import pytest
+
+from evcap.recon.metrics import depth_rel_err, object_metrics, psnr, srgb
+
+
+@pytest.fixture(scope="module")
+def scene() -> tuple[np.ndarray, np.ndarray]:
+    """Two 40 x 60 views: a checkered disc (the object, at depth 2) on a smooth environment."""
+    y, x = np.mgrid[:40, :60]
+    disc = (x - 30) ** 2 + (y - 20) ** 2 < 14**2
+    checker = ((x // 4 + y // 4) % 2).astype(float)
+    sky = np.stack([0.3 + 0.2 * x / 60, 0.4 + 0.0 * x, 0.5 - 0.2 * y / 40], -1)
+    image = np.where(disc[..., None], 0.1 + 0.6 * checker[..., None] * [1.0, 0.8, 0.5], sky)
+    radiance = np.stack([image, image[:, ::-1]]).astype(np.float32)
+    depth = np.stack([np.where(disc, 2.0, 0.0)] * 2).astype(np.float32)
+    return radiance, depth
+
+
+def test_the_truth_scores_far_above_a_constant(scene):
+    radiance, depth = scene
+    m = object_metrics(radiance, radiance, depth)
+    assert m["object_psnr_cc"] > 60 and m["object_ssim_cc"] > 0.99
+    assert m["object_psnr_constant"] < 15  # the checker: 0.1 against 0.7 at its brightest
+
+
+def test_a_constant_object_scores_no_better_than_the_constant(scene):
+    radiance, depth = scene
+    pred = radiance.copy()
+    pred[depth > 0] = radiance[depth > 0].mean(0)
+    m = object_metrics(pred, radiance, depth)
+    assert m["object_psnr_cc"] <= m["object_psnr_constant"] + 0.5
+    assert m["object_ssim_cc"] < 0.5
+
+
+def test_the_environment_does_not_count(scene):
+    radiance, depth = scene
+    pred = radiance.copy()
+    pred[depth == 0] = 0.0  # a black environment; the object as it is
+    m = object_metrics(pred, radiance, depth)
+    assert m["object_psnr_cc"] > 60
+
+
+def test_the_color_correction_forgives_a_gain_and_offset(scene):
+    radiance, depth = scene
+    m = object_metrics(0.5 * radiance + 0.1, radiance, depth)
+    assert m["object_psnr_cc"] > 50
+
+
+def test_the_blurred_truth_is_below_the_truth_and_above_a_constant(scene):
+    radiance, depth = scene
+    blur = object_metrics(radiance, radiance, depth)["blur_psnr"]
+    truth = srgb(radiance)
+    assert psnr(np.broadcast_to(truth.mean((0, 1, 2)), truth.shape), truth) < blur < 40
+
+
+def test_without_an_object_only_the_blur(scene):
+    radiance, depth = scene
+    assert set(object_metrics(radiance, radiance, np.zeros_like(depth))) == {"blur_psnr"}
+
+
+def test_depth_error_relative_to_the_distance(scene):
+    _, depth = scene
+    assert depth_rel_err(depth * 1.02, depth) == pytest.approx(0.02, rel=1e-5)
+    assert np.isnan(depth_rel_err(depth, np.zeros_like(depth)))
