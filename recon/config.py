@@ -37,6 +37,14 @@ class RadianceConfig:
     # mean opacity, as gsplat's opacity_reg: where the events say nothing (a plain background,
     # the inside of a patch), the fewest Gaussians that explain them
     opacity_reg: float = 0.01
+    # surfaces, not fog (candidates, measured in bench/geometry.py): opacities pushed to 0 or 1
+    # (mean o (1 - o)) from a fraction of the run on; Gaussians flattened (mean of the
+    # smallest over the largest scale); Gaussians that leave the ball the cameras converge
+    # on, grown by this factor, pruned at each densification (0: never)
+    binary_weight: float = 0.0
+    binary_from: float = 0.5
+    flatten_weight: float = 0.0
+    confine: float = 0.0
     # Adam learning rates; positions scale with the scene's extent and decay to lr_means_final
     lr_means: float = 1.6e-4
     lr_means_final: float = 1.6e-6
@@ -133,6 +141,9 @@ def preset(name: str, **overrides: object) -> RadianceConfig:
     """The named preset with some fields replaced (None values are ignored)."""
     if name not in PRESETS:
         raise InputError(f"unknown preset {name!r}; expected one of {', '.join(PRESETS)}")
+    unknown = set(overrides) - {f.name for f in dataclasses.fields(RadianceConfig)}
+    if unknown:
+        raise InputError(f"unknown stage-I setting(s): {', '.join(sorted(unknown))}")
     config = dataclasses.replace(
         PRESETS[name], **{k: v for k, v in overrides.items() if v is not None}
     )

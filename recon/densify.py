@@ -11,12 +11,16 @@ import torch
 from evcap.recon.config import RadianceConfig
 from evcap.recon.gaussians import PARAMS, Gaussians
 from evcap.recon.rasterize import Render, quat_to_rotmat
+from evcap.recon.volume import SceneVolume
 
 
 class Densifier:
-    def __init__(self, config: RadianceConfig, extent: float) -> None:
+    def __init__(
+        self, config: RadianceConfig, extent: float, volume: SceneVolume | None = None
+    ) -> None:
         self.config = config
         self.extent = extent
+        self.volume = volume
         self.grad_sum = torch.zeros(0)
         self.count = torch.zeros(0)
 
@@ -77,6 +81,10 @@ class Densifier:
         keep &= model.opacities >= c.min_opacity
         keep &= model.scales.max(1).values <= self.extent  # none larger than the scene
         keep &= torch.isfinite(model.means).all(1)
+        v = self.volume
+        if c.confine > 0 and v is not None and v.converging:
+            center = torch.as_tensor(v.center, dtype=model.means.dtype, device=model.means.device)
+            keep &= (model.means.detach() - center).norm(dim=1) <= c.confine * v.radius
         pruned = int((~keep).sum()) - len(split)
         _select(model, optimizer, keep)
         self.grad_sum = torch.zeros(len(model))

@@ -175,7 +175,7 @@ def train_radiance(
         field = RadianceField(gaussians, background, backend).to(device)
     extent = data.volume.radius
     optimizer = make_optimizer(field.gaussians, field.background, config, extent)
-    densifier = Densifier(config, extent)
+    densifier = Densifier(config, extent, data.volume)
     rng = np.random.default_rng(seed + 1)
     log: list[StepLog] = []
     history: list[dict] = []
@@ -302,6 +302,13 @@ def _losses(
         nl = nl / len(renders)
         total = total + config.normal_weight * nl
         terms["normal"] = nl.item()
+    g = field.gaussians
     if config.opacity_reg > 0:
-        total = total + config.opacity_reg * field.gaussians.opacities.mean()
+        total = total + config.opacity_reg * g.opacities.mean()
+    if config.binary_weight > 0 and step > config.binary_from * config.iterations:
+        o = g.opacities
+        total = total + config.binary_weight * (o * (1 - o)).mean()
+    if config.flatten_weight > 0:
+        s = g.log_scales
+        total = total + config.flatten_weight * (s.min(1).values - s.max(1).values).exp().mean()
     return renders, total, terms

@@ -85,6 +85,7 @@ def reconstruct(
     material_iterations: int | None = None,
     seed: int = 0,
     zero_events: str | None = None,
+    radiance_settings: dict | None = None,
     visibility: str | None = None,
     indirect: str | None = None,
     ablate: tuple[str, ...] = (),
@@ -94,7 +95,8 @@ def reconstruct(
     say: Callable[[str], None] = lambda line: None,
     progress: Callable[[int, int, str], None] | None = None,
 ) -> dict:
-    """Run the reconstruction; returns what went into OUT/metrics.json. With ``resume``, a
+    """Run the reconstruction; returns what went into OUT/metrics.json. ``radiance_settings``:
+    stage I's (RadianceConfig's fields) over the preset's. With ``resume``, a
     stage interrupted in OUT with the same session and settings goes on from where it
     stopped; ``overwrite`` lets a finished (or differently started) one be replaced."""
     if stage not in STAGES:
@@ -113,7 +115,11 @@ def reconstruct(
         config = cfg.RadianceConfig(**settings)
     else:
         config = cfg.preset(
-            preset, resolution=resolution, iterations=iterations, zero_events=zero_events
+            preset,
+            resolution=resolution,
+            iterations=iterations,
+            zero_events=zero_events,
+            **(radiance_settings or {}),
         )
     started = time.perf_counter()
     with Session.open(session_path) as session:

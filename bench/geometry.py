@@ -1,0 +1,118 @@
+"""Stage I geometry: each candidate change against the settings as they are, on the object's
+pixels of the held-out views (PSNR after color correction beside a constant color's, normal
+error, depth error as a share of the distance) and the time it took.
+
+    .venv/bin/python bench/geometry.py [--scenes single_object multi_object] [--preset fast]
+        [--iterations N] [--resolution X] [--seed 5] [--variants base binary ...] [--merge]
+
+A variant is a name and the stage-I settings it changes (VARIANTS); `base` changes nothing.
+--iterations and --resolution screen the variants on a shorter run than the preset's.
+--merge keeps the rows of the previous results that this run does not redo.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+from _common import RESULTS, machine, session_of
+
+from evcap.recon.reconstruct import reconstruct
+
+VARIANTS: dict[str, dict] = {
+    "base": {},
+    "binary": {"binary_weight": 0.1},
+    "flatten": {"flatten_weight": 0.1},
+    "confine": {"confine": 1.5},
+    "normal 0.2": {"normal_weight": 0.2},
+    "normal 0": {"normal_weight": 0.0},
+    "normal late": {"normal_from": 0.3},
+    "bound": {"zero_events": "bound"},
+}
+COLUMNS = (
+    "scene",
+    "variant",
+    "iterations",
+    "resolution",
+    "seconds",
+    "gaussians",
+    "object_psnr_cc",
+    "object_psnr_constant",
+    "normal_mae_deg",
+    "depth_rel_err",
+    "render_psnr_cc",
+)
+
+
+def run(session: Path, preset: str, seed: int, args: argparse.Namespace, settings: dict) -> dict:
+    with tempfile.TemporaryDirectory() as out:
+        return reconstruct(
+            session,
+            out,
+            preset=preset,
+            seed=seed,
+            stage="radiance",
+            iterations=args.iterations,
+            resolution=args.resolution,
+            radiance_settings=settings,
+        )
+
+
+def markdown(rows: list[dict]) -> str:
+    def cell(v: object) -> str:
+        if isinstance(v, float):
+            return f"{v:.3g}" if abs(v) < 100 else f"{v:.0f}"
+        return "" if v is None else str(v)
+
+    lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    lines += ["| " + " | ".join(cell(r.get(c)) for c in COLUMNS) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--scenes", nargs="+", default=["single_object", "multi_object"])
+    parser.add_argument("--preset", default="fast")
+    parser.add_argument("--iterations", type=int)
+    parser.add_argument("--resolution", type=float)
+    parser.add_argument("--seed", type=int, default=5)
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    parser.add_argument("--merge", action="store_true", help="keep the previous rows not rerun")
+    args = parser.parse_args()
+
+    path = RESULTS / "geometry.json"
+    kept = json.loads(path.read_text())["runs"] if args.merge and path.exists() else []
+    rows = []
+    for scene in args.scenes:
+        session = session_of(scene)
+        for name in args.variants:
+            started = time.perf_counter()
+            result = run(session, args.preset, args.seed, args, VARIANTS[name])
+            row = {
+                "scene": scene,
+                "variant": name,
+                "preset": args.preset,
+                "seed": args.seed,
+                "resolution": args.resolution,
+                "wall_seconds": time.perf_counter() - started,
+                **{k: v for k, v in result.items() if k != "history"},
+            }
+            rows.append(row)
+            print(" ".join(f"{k}={row.get(k)}" for k in COLUMNS), flush=True)
+    redone = {(r["scene"], r["variant"], r["iterations"]) for r in rows}
+    rows = [r for r in kept if (r["scene"], r["variant"], r["iterations"]) not in redone] + rows
+    RESULTS.mkdir(exist_ok=True)
+    path.write_text(
+        json.dumps({"benchmark": "geometry", "machine": machine(), "runs": rows}, indent=2)
+    )
+    table = markdown(rows)
+    (RESULTS / "geometry.md").write_text(table)
+    print(table)
+    print(f"-> {path}, .md")
+
+
+if __name__ == "__main__":
+    main()
