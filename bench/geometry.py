@@ -24,11 +24,15 @@ from evcap.recon.reconstruct import reconstruct
 
 VARIANTS: dict[str, dict] = {
     "base": {},
+    "no spread": {"spread_weight": 0.0},
+    "spread 1": {"spread_weight": 1.0},
+    "spread 30": {"spread_weight": 30.0},
     "binary": {"binary_weight": 0.1},
     "flatten": {"flatten_weight": 0.1},
     "confine": {"confine": 1.5},
+    "alpha 0.1": {"alpha_weight": 0.1},
+    "background 256": {"background_size": 256},
     "normal 0.2": {"normal_weight": 0.2},
-    "normal 0": {"normal_weight": 0.0},
     "normal late": {"normal_from": 0.3},
     "bound": {"zero_events": "bound"},
 }

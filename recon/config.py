@@ -37,10 +37,14 @@ class RadianceConfig:
     # mean opacity, as gsplat's opacity_reg: where the events say nothing (a plain background,
     # the inside of a patch), the fewest Gaussians that explain them
     opacity_reg: float = 0.01
-    # surfaces, not fog (candidates, measured in bench/geometry.py): opacities pushed to 0 or 1
-    # (mean o (1 - o)) from a fraction of the run on; Gaussians flattened (mean of the
-    # smallest over the largest scale); Gaussians that leave the ball the cameras converge
-    # on, grown by this factor, pruned at each densification (0: never)
+    # surfaces, not fog (candidates, measured in bench/geometry.py): the spread of the depths
+    # along each ray (losses.depth_spread_loss); opacities pushed to 0 or 1 (mean o (1 - o))
+    # from a fraction of the run on; Gaussians flattened (mean of the smallest over the
+    # largest scale); Gaussians that leave the ball the cameras converge on, grown by this
+    # factor, pruned at each densification (0: never); the mean rendered alpha (what the
+    # environment map can explain, it should)
+    spread_weight: float = 0.0
+    alpha_weight: float = 0.0
     binary_weight: float = 0.0
     binary_from: float = 0.5
     flatten_weight: float = 0.0
@@ -122,8 +126,10 @@ PRESETS: dict[str, RadianceConfig] = {
     ),
     # the compiled rasterizer made a step ten times cheaper: 4000 steps at 0.75 of the
     # sensor's scale (10 minutes here) measured best within 15 minutes; 30k Gaussians and
-    # full scale cost more time for less (bench/recon_pareto.py)
-    "fast": RadianceConfig(iterations=4000, resolution=0.75),
+    # full scale cost more time for less (bench/recon_pareto.py). The depth-spread loss
+    # (bench/geometry.py) was measured on runs this long only; on tiny's 150 steps it cost
+    # whole-image PSNR
+    "fast": RadianceConfig(iterations=4000, resolution=0.75, spread_weight=10.0),
     "paper": RadianceConfig(
         iterations=30_000,
         resolution=1.0,

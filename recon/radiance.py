@@ -2,7 +2,8 @@
 
 Each step draws a window between two frame times, renders the two views (poses interpolated),
 reads them at the sensor's pixels, and compares the change of log radiance of each pixel's
-channel with its events: L = L_event + 0.1 L_GW + 0.05 L_normal.
+channel with its events: L = L_event + 0.1 L_GW + 0.05 L_normal, and (ours, in `fast`)
+10 L_spread, the spread of the depths along each ray.
 """
 
 from __future__ import annotations
@@ -22,7 +23,13 @@ from evcap.recon.config import RadianceConfig
 from evcap.recon.densify import Densifier
 from evcap.recon.event_windows import EventWindows
 from evcap.recon.gaussians import Background, Gaussians, make_optimizer, means_lr
-from evcap.recon.losses import anchor_loss, event_loss, log_radiance, normal_loss
+from evcap.recon.losses import (
+    anchor_loss,
+    depth_spread_loss,
+    event_loss,
+    log_radiance,
+    normal_loss,
+)
 from evcap.recon.optics import CHANNEL_WEIGHTS, RenderGrid, SensorOptics, render_grid
 from evcap.recon.rasterize import Camera, Render, rasterize
 from evcap.recon.resume import Steps, random_states, restore_random_states
@@ -72,14 +79,25 @@ class RadianceField(torch.nn.Module):
         self.backend = backend
 
     def render(
-        self, T_world_cam: np.ndarray, grid: RenderGrid, sh_degree: int | None = None
+        self,
+        T_world_cam: np.ndarray,
+        grid: RenderGrid,
+        sh_degree: int | None = None,
+        spread: bool = False,
     ) -> Render:
+        """The view; with ``spread``, color has a fourth channel: sum w z^2, the composited
+        second moment of the Gaussians' depths (its spread about the expected depth is
+        what the depth-spread loss takes)."""
         device = self.gaussians.means.device
         viewmat = torch.as_tensor(np.linalg.inv(T_world_cam), dtype=torch.float32, device=device)
         cam = Camera(viewmat, grid.K, grid.width, grid.height)
         g = self.gaussians
         colors = g.radiance(cam.center, sh_degree)
         bg = self.background(pixel_directions(cam))
+        if spread:
+            z = g.means @ viewmat[2, :3] + viewmat[2, 3]
+            colors = torch.cat([colors, (z * z)[:, None]], 1)
+            bg = torch.cat([bg, bg.new_zeros(*bg.shape[:-1], 1)], -1)
         return rasterize(
             g.means,
             g.quats,
@@ -291,8 +309,9 @@ def _losses(
 ) -> tuple[list[Render], torch.Tensor, dict[str, float]]:
     """The renders at the frames, and the loss of every window between two of them."""
     poses = data.track.at(data.windows.frame_times[frames])
-    renders = [field.render(T, data.grid, sh_degree) for T in poses]
-    seen = [data.grid.sample(r.color) for r in renders]  # [H * W, 3] at the sensor's pixels
+    spread = config.spread_weight > 0
+    renders = [field.render(T, data.grid, sh_degree, spread) for T in poses]
+    seen = [data.grid.sample(r.color[..., :3]) for r in renders]  # [H * W, 3], sensor pixels
     ev = windows_event_loss(data, config, frames, seen)
     an = anchor_loss(torch.cat(seen), config.anchor_level)
     total = ev + config.anchor_weight * an
@@ -302,6 +321,12 @@ def _losses(
         nl = nl / len(renders)
         total = total + config.normal_weight * nl
         terms["normal"] = nl.item()
+    if spread:
+        sl = sum(depth_spread_loss(r.color[..., 3], r.depth, r.alpha) for r in renders)
+        total = total + config.spread_weight * sl / len(renders)
+    if config.alpha_weight > 0:
+        alpha = torch.stack([r.alpha.mean() for r in renders]).mean()
+        total = total + config.alpha_weight * alpha
     g = field.gaussians
     if config.opacity_reg > 0:
         total = total + config.opacity_reg * g.opacities.mean()
