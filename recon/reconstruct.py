@@ -114,13 +114,10 @@ def reconstruct(
         field, settings = load_checkpoint(out / "checkpoint" / "radiance.pt", device, backend)
         config = cfg.RadianceConfig(**settings)
     else:
-        config = cfg.preset(
-            preset,
-            resolution=resolution,
-            iterations=iterations,
-            zero_events=zero_events,
-            **(radiance_settings or {}),
-        )
+        named = {"resolution": resolution, "iterations": iterations, "zero_events": zero_events}
+        named = {k: v for k, v in named.items() if v is not None}
+        overrides = {**(radiance_settings or {}), **named}
+        config = cfg.preset(preset, **overrides)
     started = time.perf_counter()
     with Session.open(session_path) as session:
         session_id = resume_.session_fingerprint(session)

@@ -244,3 +244,18 @@ def test_cli_writes_a_reconstruction(color_session, tmp_path):
     assert not metrics["effects"]["tv"] and not metrics["effects"]["anchor"]
     assert metrics["effects"]["distill"]
     assert "render_psnr_cc" in r.stdout and "base_color_psnr_cc" in r.stdout
+
+
+def test_stage_one_settings_over_the_preset(color_session, tmp_path):
+    settings = {"zero_events": "bound", "spread_weight": 10.0, "iterations": 9}
+    reconstruct(
+        color_session,
+        tmp_path,
+        preset="tiny",
+        stage="radiance",
+        iterations=2,  # a named argument goes over the settings
+        radiance_settings=settings,
+    )
+    config = tomllib.loads((tmp_path / "config.toml").read_text())["radiance"]
+    assert config["zero_events"] == "bound" and config["spread_weight"] == 10.0
+    assert config["iterations"] == 2
