@@ -29,6 +29,19 @@ def report(name: str, figures: dict) -> None:
     print(f"-> {out}")
 
 
+def markdown_table(rows: list[dict], columns: tuple[str, ...]) -> str:
+    """A Markdown table of ``rows`` in ``columns`` (3 significant digits; empty when absent)."""
+
+    def cell(v: object) -> str:
+        if isinstance(v, float):
+            return f"{v:.3g}" if abs(v) < 100 else f"{v:.0f}"
+        return "" if v is None else str(v)
+
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    lines += ["| " + " | ".join(cell(r.get(c)) for c in columns) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
 def session_of(scene: str) -> Path:
     """The simulator's example scene, simulated once into results/sessions/."""
     from evcap.sim.scene import load_scene

@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _common import RESULTS, machine, session_of
+from _common import RESULTS, machine, markdown_table, session_of
 
 from evcap.recon.reconstruct import reconstruct
 
@@ -65,17 +65,6 @@ def run(session: Path, preset: str, seed: int, args: argparse.Namespace, setting
         )
 
 
-def markdown(rows: list[dict]) -> str:
-    def cell(v: object) -> str:
-        if isinstance(v, float):
-            return f"{v:.3g}" if abs(v) < 100 else f"{v:.0f}"
-        return "" if v is None else str(v)
-
-    lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
-    lines += ["| " + " | ".join(cell(r.get(c)) for c in COLUMNS) + " |" for r in rows]
-    return "\n".join(lines) + "\n"
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--scenes", nargs="+", default=["single_object", "multi_object"])
@@ -112,7 +101,7 @@ def main() -> None:
     path.write_text(
         json.dumps({"benchmark": "geometry", "machine": machine(), "runs": rows}, indent=2)
     )
-    table = markdown(rows)
+    table = markdown_table(rows, COLUMNS)
     (RESULTS / "geometry.md").write_text(table)
     print(table)
     print(f"-> {path}, .md")

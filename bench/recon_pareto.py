@@ -23,7 +23,7 @@ import json
 import tempfile
 from pathlib import Path
 
-from _common import RESULTS, machine, session_of
+from _common import RESULTS, machine, markdown_table, session_of
 
 from evcap.recon import config as cfg
 from evcap.recon.reconstruct import reconstruct
@@ -57,17 +57,6 @@ def run_one(session: Path, preset: str, device: str, **overrides: object) -> dic
         return reconstruct(
             session, out, preset=preset, device=device, stage="radiance", **overrides
         )
-
-
-def markdown(rows: list[dict]) -> str:
-    def cell(v: object) -> str:
-        if isinstance(v, float):
-            return f"{v:.3g}" if abs(v) < 100 else f"{v:.0f}"
-        return str(v)
-
-    lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
-    lines += ["| " + " | ".join(cell(r.get(c)) for c in COLUMNS) + " |" for r in rows]
-    return "\n".join(lines) + "\n"
 
 
 def plot(rows: list[dict], path: Path) -> None:
@@ -157,7 +146,7 @@ def main() -> None:
         ]
         if len(seeded) > 1:
             spread[scene] = (max(seeded) - min(seeded), len(seeded))
-    table = markdown(rows) + "".join(
+    table = markdown_table(rows, COLUMNS) + "".join(
         f"\n{scene}: object PSNR over {n} seeds of fast spans {s:.2f} dB\n"
         for scene, (s, n) in spread.items()
     )

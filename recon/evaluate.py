@@ -9,6 +9,7 @@ import torch.nn.functional as F
 
 from evcap.recon.material import CHANNELS, MaterialField
 from evcap.recon.metrics import (
+    blur_psnr,
     depth_abs_err,
     depth_rel_err,
     image_metrics,
@@ -76,6 +77,7 @@ def metrics(views: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -> dict[
     if "radiance" in truth and "depth" in truth:
         out.update(object_metrics(views["radiance"], truth["radiance"], truth["depth"]))
     if "radiance" in truth:
+        out["blur_psnr"] = blur_psnr(truth["radiance"])
         out.update(image_metrics(views["radiance"], truth["radiance"], "render"))
         out["lpips"] = lpips_if_available(srgb(views["radiance"]), srgb(truth["radiance"]))
     if "depth" in truth:

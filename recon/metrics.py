@@ -76,23 +76,28 @@ BLUR_PX = 25  # the blur of blur_psnr: a Gaussian of this standard deviation, in
 def object_metrics(pred: np.ndarray, gt: np.ndarray, gt_depth: np.ndarray) -> dict[str, float]:
     """Figures of linear renders [N, H, W, 3] on the object's pixels (``gt_depth`` > 0):
     sRGB PSNR and mean SSIM after a color correction fitted there, and the PSNR of the best
-    single constant color over all views (the mean of the truth's sRGB there); over the whole
-    image, the PSNR of the truth blurred by BLUR_PX."""
-    import cv2
-
+    single constant color over all views (the mean of the truth's sRGB there); {} without
+    an object."""
     mask = gt_depth > 0
-    truth = srgb(gt)
-    blurred = np.stack([cv2.GaussianBlur(t, (0, 0), BLUR_PX) for t in truth.astype(np.float32)])
-    out = {"blur_psnr": psnr(blurred, truth)}
     if not mask.any():
-        return out
+        return {}
+    truth = srgb(gt)
     cc = fit_color_correction(pred[mask], gt[mask])
     corrected = srgb(pred * cc[:, 0] + cc[:, 1])
     constant = truth[mask].mean(0)
-    out["object_psnr_cc"] = psnr(corrected[mask], truth[mask])
-    out["object_ssim_cc"] = float(ssim_map(corrected, truth)[mask].mean())
-    out["object_psnr_constant"] = psnr(np.broadcast_to(constant, truth[mask].shape), truth[mask])
-    return out
+    return {
+        "object_psnr_cc": psnr(corrected[mask], truth[mask]),
+        "object_ssim_cc": float(ssim_map(corrected, truth)[mask].mean()),
+        "object_psnr_constant": psnr(np.broadcast_to(constant, truth[mask].shape), truth[mask]),
+    }
+
+
+def blur_psnr(gt: np.ndarray) -> float:
+    """PSNR over whole images of the truth [N, H, W, 3] (linear) blurred by BLUR_PX, in sRGB."""
+    import cv2
+
+    truth = srgb(gt).astype(np.float32)
+    return psnr(np.stack([cv2.GaussianBlur(t, (0, 0), BLUR_PX) for t in truth]), truth)
 
 
 def depth_abs_err(pred: np.ndarray, gt: np.ndarray) -> float:

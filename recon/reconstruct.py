@@ -268,7 +268,6 @@ def _stage_radiance(
         out = image_metrics(views["radiance"], seen["radiance"], "render")
         if "depth" in seen:
             out.update(object_metrics(views["radiance"], seen["radiance"], seen["depth"]))
-            out.pop("blur_psnr")
         if "normal" in seen:
             out["normal_mae_deg"] = normal_mae_deg(views["normal"], seen["normal"])
         return out
