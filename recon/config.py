@@ -49,6 +49,14 @@ class RadianceConfig:
     binary_from: float = 0.5
     flatten_weight: float = 0.0
     confine: float = 0.0
+    # the environment map learnt first: for this fraction of the run the Gaussians are hidden
+    # and only the background is fitted to the events
+    background_first: float = 0.0
+    # neighbouring normals alike where the depth is continuous (losses.normal_smoothness_loss;
+    # smooth_step: the relative depth jump that counts as an outline)
+    smooth_weight: float = 0.0
+    curvature_weight: float = 0.0  # losses.depth_curvature_loss
+    smooth_step: float = 0.02
     # Adam learning rates; positions scale with the scene's extent and decay to lr_means_final
     lr_means: float = 1.6e-4
     lr_means_final: float = 1.6e-6

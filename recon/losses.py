@@ -101,3 +101,53 @@ def depth_spread_loss(
     relative = (second_moment / a - mean_sq).clamp(min=0) / mean_sq
     m = (alpha.detach() > 0.5).to(relative.dtype)
     return (relative * m).sum() / m.sum().clamp(min=1)
+
+
+def normal_smoothness_loss(
+    normal: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, step: float
+) -> torch.Tensor:
+    """Mean |n_p - n_q|_1 between neighbouring pixels' rendered normals [H, W, 3], where both
+    are mostly opaque, weighted by exp(-|z_p - z_q| / (step z_p)): smooth across a texture's
+    edges on one surface, free across an outline (a jump in depth). A surface's normals are
+    told nothing by the events inside a patch of one color; this makes them continue."""
+    n = F.normalize(normal, dim=-1, eps=1e-12)
+    z = depth.detach()
+    opaque = alpha.detach() > 0.5
+    total, weight = n.new_zeros(()), n.new_zeros(())
+    for a, b in (
+        ((slice(None), slice(1, None)), (slice(None), slice(None, -1))),
+        ((slice(1, None), slice(None)), (slice(None, -1), slice(None))),
+    ):
+        w = torch.exp(-(z[a] - z[b]).abs() / (step * z[a].clamp(min=1e-6)))
+        w = w * (opaque[a] & opaque[b]).to(w.dtype)
+        total = total + ((n[a] - n[b]).abs().sum(-1) * w).sum()
+        weight = weight + w.sum()
+    return total / weight.clamp(min=1)
+
+
+def depth_curvature_loss(depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """Mean |z_(p-1) - 2 z_p + z_(p+1)| / z_p along rows and columns, where all three pixels
+    are mostly opaque: 0 on any plane, small on a smooth surface, large where one patch of a
+    surface sits in front of or behind its neighbours. The events say where a texture's edges
+    are, not where the inside of a patch of one color is: a robust (L1) prior that surfaces
+    continue across such edges."""
+    opaque = alpha.detach() > 0.5
+    z = depth
+    total, count = z.new_zeros(()), z.new_zeros(())
+    for c, a, b in (
+        (
+            (slice(None), slice(1, -1)),
+            (slice(None), slice(None, -2)),
+            (slice(None), slice(2, None)),
+        ),
+        (
+            (slice(1, -1), slice(None)),
+            (slice(None, -2), slice(None)),
+            (slice(2, None), slice(None)),
+        ),
+    ):
+        m = (opaque[c] & opaque[a] & opaque[b]).to(z.dtype)
+        second = (z[a] - 2 * z[c] + z[b]).abs() / z[c].detach().clamp(min=1e-6)
+        total = total + (second * m).sum()
+        count = count + m.sum()
+    return total / count.clamp(min=1)

@@ -25,10 +25,12 @@ from evcap.recon.event_windows import EventWindows
 from evcap.recon.gaussians import Background, Gaussians, make_optimizer, means_lr
 from evcap.recon.losses import (
     anchor_loss,
+    depth_curvature_loss,
     depth_spread_loss,
     event_loss,
     log_radiance,
     normal_loss,
+    normal_smoothness_loss,
 )
 from evcap.recon.optics import CHANNEL_WEIGHTS, RenderGrid, SensorOptics, render_grid
 from evcap.recon.rasterize import Camera, Render, rasterize
@@ -84,10 +86,11 @@ class RadianceField(torch.nn.Module):
         grid: RenderGrid,
         sh_degree: int | None = None,
         spread: bool = False,
+        hidden: bool = False,
     ) -> Render:
         """The view; with ``spread``, color has a fourth channel: sum w z^2, the composited
         second moment of the Gaussians' depths (its spread about the expected depth is
-        what the depth-spread loss takes)."""
+        what the depth-spread loss takes); ``hidden`` renders the background alone."""
         device = self.gaussians.means.device
         viewmat = torch.as_tensor(np.linalg.inv(T_world_cam), dtype=torch.float32, device=device)
         cam = Camera(viewmat, grid.K, grid.width, grid.height)
@@ -102,7 +105,7 @@ class RadianceField(torch.nn.Module):
             g.means,
             g.quats,
             g.scales,
-            g.opacities,
+            g.opacities * 0 if hidden else g.opacities,
             colors,
             cam,
             background=bg,
@@ -310,7 +313,8 @@ def _losses(
     """The renders at the frames, and the loss of every window between two of them."""
     poses = data.track.at(data.windows.frame_times[frames])
     spread = config.spread_weight > 0
-    renders = [field.render(T, data.grid, sh_degree, spread) for T in poses]
+    hidden = step <= config.background_first * config.iterations
+    renders = [field.render(T, data.grid, sh_degree, spread, hidden) for T in poses]
     seen = [data.grid.sample(r.color[..., :3]) for r in renders]  # [H * W, 3], sensor pixels
     ev = windows_event_loss(data, config, frames, seen)
     an = anchor_loss(torch.cat(seen), config.anchor_level)
@@ -324,10 +328,20 @@ def _losses(
     if spread:
         sl = sum(depth_spread_loss(r.color[..., 3], r.depth, r.alpha) for r in renders)
         total = total + config.spread_weight * sl / len(renders)
+    if config.smooth_weight > 0:
+        sm = sum(
+            normal_smoothness_loss(r.normal, r.depth, r.alpha, config.smooth_step) for r in renders
+        )
+        total = total + config.smooth_weight * sm / len(renders)
+    if config.curvature_weight > 0:
+        cu = sum(depth_curvature_loss(r.depth, r.alpha) for r in renders)
+        total = total + config.curvature_weight * cu / len(renders)
     if config.alpha_weight > 0:
         alpha = torch.stack([r.alpha.mean() for r in renders]).mean()
         total = total + config.alpha_weight * alpha
     g = field.gaussians
+    if hidden:
+        return renders, total, terms
     if config.opacity_reg > 0:
         total = total + config.opacity_reg * g.opacities.mean()
     if config.binary_weight > 0 and step > config.binary_from * config.iterations:

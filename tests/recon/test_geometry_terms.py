@@ -1,4 +1,4 @@
-"""Stage I's terms for surfaces: the depth-spread loss, and the settings that turn them on."""
+"""Stage I's terms for surfaces (depth spread, depth curvature, normal smoothness, the\nbackground learnt first) and the settings that turn them on."""
 
 import math
 
@@ -7,7 +7,10 @@ import torch
 
 from evcap.errors import InputError
 from evcap.recon import config as cfg
-from evcap.recon.losses import depth_spread_loss
+from evcap.recon.gaussians import Background, Gaussians
+from evcap.recon.losses import depth_curvature_loss, depth_spread_loss, normal_smoothness_loss
+from evcap.recon.optics import RenderGrid
+from evcap.recon.radiance import RadianceField
 from evcap.recon.rasterize import Camera, rasterize
 
 
@@ -53,3 +56,55 @@ def test_unknown_settings_are_named():
     with pytest.raises(InputError, match="spread_wieght"):
         cfg.preset("tiny", spread_wieght=1.0)
     assert cfg.preset("tiny", spread_weight=10.0).spread_weight == 10.0
+
+
+def grid(h: int = 12, w: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
+    return torch.meshgrid(
+        torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij"
+    )
+
+
+def test_curvature_is_zero_on_a_plane_and_counts_a_patch_out_of_it():
+    ys, xs = grid()
+    plane = 2.0 + 0.05 * xs - 0.02 * ys
+    opaque = torch.ones_like(plane)
+    assert float(depth_curvature_loss(plane, opaque)) == pytest.approx(0.0, abs=1e-6)
+    patch = plane.clone()
+    patch[4:8, 5:10] += 0.2  # one square of a checker behind its neighbours
+    deeper = plane.clone()
+    deeper[4:8, 5:10] += 0.4
+    assert (
+        0.005
+        < float(depth_curvature_loss(patch, opaque))
+        < float(depth_curvature_loss(deeper, opaque))
+    )
+    # where the render is transparent (the background), nothing counts
+    assert float(depth_curvature_loss(patch, (patch == plane).float())) == pytest.approx(
+        0, abs=1e-6
+    )
+
+
+def test_normals_are_smoothed_across_a_texture_edge_not_across_an_outline():
+    ys, xs = grid()
+    opaque = torch.ones_like(xs)
+    normals = torch.zeros(12, 16, 3)
+    normals[..., 2] = -1
+    normals[:, 8:] = torch.tensor([0.5, 0.0, -0.8])  # a crease at column 8
+    one_surface = torch.full_like(xs, 2.0)
+    outline = torch.where(xs < 8, 2.0, 3.0)  # the right half far behind
+    flat = normals.clone()
+    flat[:, 8:] = normals[0, 0]
+    assert float(normal_smoothness_loss(flat, one_surface, opaque, 0.02)) == 0.0
+    crease = float(normal_smoothness_loss(normals, one_surface, opaque, 0.02))
+    assert crease > 0.01
+    assert float(normal_smoothness_loss(normals, outline, opaque, 0.02)) < 1e-3 * crease
+
+
+def test_hidden_gaussians_leave_the_background_alone():
+    gaussians = Gaussians.random(torch.randn(50, 3).numpy() + [0, 0, 4], 0, torch.Generator(), 0.3)
+    field = RadianceField(gaussians, Background(8), backend="torch")
+    K = torch.tensor([[20.0, 0, 12], [0, 20.0, 9], [0, 0, 1]])
+    g = RenderGrid(K, 24, 18, torch.zeros(1, 1, 1, 2))
+    T = torch.eye(4).numpy()
+    assert float(field.render(T, g).alpha.max()) > 0.1
+    assert float(field.render(T, g, hidden=True).alpha.max()) == 0.0
