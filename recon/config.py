@@ -134,10 +134,16 @@ PRESETS: dict[str, RadianceConfig] = {
     ),
     # the compiled rasterizer made a step ten times cheaper: 4000 steps at 0.75 of the
     # sensor's scale (10 minutes here) measured best within 15 minutes; 30k Gaussians and
-    # full scale cost more time for less (bench/recon_pareto.py). The depth-spread loss
-    # (bench/geometry.py) was measured on runs this long only; on tiny's 150 steps it cost
-    # whole-image PSNR
-    "fast": RadianceConfig(iterations=4000, resolution=0.75, spread_weight=10.0),
+    # full scale cost more time for less (bench/recon_pareto.py). The geometry terms
+    # (bench/geometry.py: depth spread, the background first, normal smoothness) were measured
+    # on runs this long only; on tiny's 150 steps the depth spread cost whole-image PSNR
+    "fast": RadianceConfig(
+        iterations=4000,
+        resolution=0.75,
+        spread_weight=10.0,
+        background_first=0.1,
+        smooth_weight=0.3,
+    ),
     "paper": RadianceConfig(
         iterations=30_000,
         resolution=1.0,
