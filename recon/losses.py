@@ -92,15 +92,19 @@ def normal_loss(
 def depth_spread_loss(
     second_moment: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor
 ) -> torch.Tensor:
-    """Mean relative variance of the depths along each ray, Var(z) / E[z]^2 with the
-    compositing weights, where the render is mostly opaque: 0 for a thin surface, large for
+    """Mean relative variance of the depths along each ray, r = Var(z) / E[z]^2 with the
+    compositing weights (as r / (1 + r)), where the render is mostly opaque: 0 for a thin surface, large for
     fog spread in depth (a cheaper relative of the distortion loss of Mip-NeRF 360 and 2DGS).
     ``second_moment``: sum w z^2; ``depth``: sum w z / sum w."""
     a = alpha.clamp(min=1e-6)
     mean_sq = depth.clamp(min=1e-6) ** 2
     relative = (second_moment / a - mean_sq).clamp(min=0) / mean_sq
+    # bounded, r / (1 + r): a ray through a floater near the camera and the surface far
+    # behind has a relative variance near 1 or more, and its unbounded gradient once turned
+    # such a floater into an opaque wall in front of the cameras
+    robust = relative / (1 + relative)
     m = (alpha.detach() > 0.5).to(relative.dtype)
-    return (relative * m).sum() / m.sum().clamp(min=1)
+    return (robust * m).sum() / m.sum().clamp(min=1)
 
 
 def normal_smoothness_loss(

@@ -40,8 +40,12 @@ def test_fog_spread_in_depth_costs_more_the_wider_it_is():
     w = torch.tensor([0.6, 0.4 * 0.6])
     d = torch.tensor([2.0, 3.0])
     mean = (w * d).sum() / w.sum()
-    expected = ((w * d * d).sum() / w.sum() - mean**2) / mean**2
-    assert far == pytest.approx(float(expected), rel=1e-3)
+    relative = ((w * d * d).sum() / w.sum() - mean**2) / mean**2
+    assert far == pytest.approx(float(relative / (1 + relative)), rel=1e-3)
+
+
+def test_a_floater_near_the_camera_costs_at_most_one():
+    assert 0.5 < float(depth_spread_loss(*layers([0.05, 3.0], 0.6))) < 1.0
 
 
 def test_transparent_pixels_do_not_count_and_stay_finite():
