@@ -93,8 +93,9 @@ def depth_spread_loss(
     second_moment: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor
 ) -> torch.Tensor:
     """Mean relative variance of the depths along each ray, r = Var(z) / E[z]^2 with the
-    compositing weights (as r / (1 + r)), where the render is mostly opaque: 0 for a thin surface, large for
-    fog spread in depth (a cheaper relative of the distortion loss of Mip-NeRF 360 and 2DGS).
+    compositing weights (as r / (1 + r)), where the render is mostly opaque: 0 for a thin
+    surface, large for fog spread in depth (a cheaper relative of the distortion loss of
+    Mip-NeRF 360 and 2DGS).
     ``second_moment``: sum w z^2; ``depth``: sum w z / sum w."""
     a = alpha.clamp(min=1e-6)
     mean_sq = depth.clamp(min=1e-6) ** 2

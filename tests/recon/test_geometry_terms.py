@@ -1,4 +1,5 @@
-"""Stage I's terms for surfaces (depth spread, depth curvature, normal smoothness, the\nbackground learnt first) and the settings that turn them on."""
+"""Stage I's terms for surfaces (depth spread, depth curvature, normal smoothness, the
+background learnt first) and the settings that turn them on."""
 
 import math
 
