@@ -55,8 +55,8 @@ class RadianceConfig:
     # neighbouring normals alike where the depth is continuous (losses.normal_smoothness_loss;
     # smooth_step: the relative depth jump that counts as an outline)
     smooth_weight: float = 0.0
-    curvature_weight: float = 0.0  # losses.depth_curvature_loss
     smooth_step: float = 0.02
+    curvature_weight: float = 0.0  # losses.depth_curvature_loss
     # Adam learning rates; positions scale with the scene's extent and decay to lr_means_final
     lr_means: float = 1.6e-4
     lr_means_final: float = 1.6e-6
