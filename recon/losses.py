@@ -119,13 +119,12 @@ def normal_smoothness_loss(
     z = depth.detach()
     opaque = alpha.detach() > 0.5
     total, weight = n.new_zeros(()), n.new_zeros(())
-    for a, b in (
-        ((slice(None), slice(1, None)), (slice(None), slice(None, -1))),
-        ((slice(1, None), slice(None)), (slice(None, -1), slice(None))),
-    ):
-        w = torch.exp(-(z[a] - z[b]).abs() / (step * z[a].clamp(min=1e-6)))
-        w = w * (opaque[a] & opaque[b]).to(w.dtype)
-        total = total + ((n[a] - n[b]).abs().sum(-1) * w).sum()
+    for dim in (0, 1):  # rows, then columns: each pixel and the one after it
+        size = z.shape[dim] - 1
+        near = z.narrow(dim, 1, size)
+        w = torch.exp(-z.diff(dim=dim).abs() / (step * near.clamp(min=1e-6)))
+        w = w * (opaque.narrow(dim, 0, size) & opaque.narrow(dim, 1, size)).to(w.dtype)
+        total = total + (n.diff(dim=dim).abs().sum(-1) * w).sum()
         weight = weight + w.sum()
     return total / weight.clamp(min=1)
 
@@ -137,22 +136,12 @@ def depth_curvature_loss(depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tens
     are, not where the inside of a patch of one color is: a robust (L1) prior that surfaces
     continue across such edges."""
     opaque = alpha.detach() > 0.5
-    z = depth
-    total, count = z.new_zeros(()), z.new_zeros(())
-    for c, a, b in (
-        (
-            (slice(None), slice(1, -1)),
-            (slice(None), slice(None, -2)),
-            (slice(None), slice(2, None)),
-        ),
-        (
-            (slice(1, -1), slice(None)),
-            (slice(None, -2), slice(None)),
-            (slice(2, None), slice(None)),
-        ),
-    ):
-        m = (opaque[c] & opaque[a] & opaque[b]).to(z.dtype)
-        second = (z[a] - 2 * z[c] + z[b]).abs() / z[c].detach().clamp(min=1e-6)
-        total = total + (second * m).sum()
+    total, count = depth.new_zeros(()), depth.new_zeros(())
+    for dim in (0, 1):
+        size = depth.shape[dim] - 2
+        m = opaque.narrow(dim, 0, size) & opaque.narrow(dim, 1, size) & opaque.narrow(dim, 2, size)
+        m = m.to(depth.dtype)
+        middle = depth.narrow(dim, 1, size).detach().clamp(min=1e-6)
+        total = total + (depth.diff(n=2, dim=dim).abs() / middle * m).sum()
         count = count + m.sum()
     return total / count.clamp(min=1)

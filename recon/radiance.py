@@ -321,6 +321,8 @@ def _losses(
     an = anchor_loss(torch.cat(seen), config.anchor_level)
     total = ev + config.anchor_weight * an
     terms = {"event": ev.item(), "anchor": an.item(), "normal": 0.0}
+    if hidden:  # the background alone: the terms of the Gaussians wait for them
+        return renders, total, terms
     if config.normal_weight > 0 and step > config.normal_from * config.iterations:
         nl = sum(normal_loss(r.normal, r.depth, r.alpha, data.grid.K) for r in renders)
         nl = nl / len(renders)
@@ -340,8 +342,6 @@ def _losses(
     if config.alpha_weight > 0:
         alpha = torch.stack([r.alpha.mean() for r in renders]).mean()
         total = total + config.alpha_weight * alpha
-    if hidden:  # the Gaussians' own terms wait for them
-        return renders, total, terms
     g = field.gaussians
     if config.opacity_reg > 0:
         total = total + config.opacity_reg * g.opacities.mean()

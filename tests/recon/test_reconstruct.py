@@ -13,8 +13,11 @@ import pytest
 import torch
 
 from evcap.errors import InputError
+from evcap.recon import config as cfg
 from evcap.recon.export import read_ply_header
+from evcap.recon.radiance import load_training_data, train_radiance
 from evcap.recon.reconstruct import reconstruct
+from evcap.session import Session
 from evcap.sim.scene import load_scene
 from evcap.sim.simulate import simulate
 
@@ -259,3 +262,29 @@ def test_stage_one_settings_over_the_preset(color_session, tmp_path):
     config = tomllib.loads((tmp_path / "config.toml").read_text())["radiance"]
     assert config["zero_events"] == "bound" and config["spread_weight"] == 10.0
     assert config["iterations"] == 2
+
+
+def test_the_background_alone_first_then_the_gaussians_with_fasts_terms(color_session):
+    config = cfg.preset(
+        "tiny",
+        iterations=4,
+        background_first=0.5,
+        spread_weight=10.0,
+        smooth_weight=0.3,
+        curvature_weight=1.0,
+    )
+    with Session.open(color_session) as session:
+        data = load_training_data(session, config, "cpu")
+    seen: list[tuple[torch.Tensor, torch.Tensor]] = []
+
+    def record(field) -> dict:
+        seen.append(
+            (field.gaussians.means.detach().clone(), field.background.faces.detach().clone())
+        )
+        return {}
+
+    fit = train_radiance(data, config, evaluate=record, evaluations=4)
+    (means1, faces1), (means2, faces2), _, (means4, _) = seen
+    assert torch.equal(means1, means2) and not torch.equal(faces1, faces2)  # hidden: bg only
+    assert not torch.equal(means2, means4)  # then the Gaussians learn, every term finite
+    assert np.isfinite([x.loss for x in fit.log]).all()
