@@ -356,6 +356,7 @@ def _cmd_poses(args: argparse.Namespace) -> int:
             rate_hz=args.rate,
             export_frames=args.export_frames,
             gravity=not args.no_gravity,
+            gyro=not args.no_gyro,
             aps={"auto": None, "on": True, "off": False}[args.aps],
             threads=args.threads,
             say=print,
@@ -586,6 +587,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="structure from motion's threads (default 1: the same session gives the same "
         "poses bit for bit; more are faster, but COLMAP then varies a little from run to run; "
         "0: every core)",
+    )
+    p.add_argument(
+        "--no-gyro",
+        action="store_true",
+        help="keep structure from motion's orientations (by default, when the session has IMU "
+        "samples, the orientations are the gyroscope's, tied to the frames' by one rotation and "
+        "the gyroscope's bias, and the positions are adjusted to them)",
     )
     p.add_argument(
         "--no-gravity",

@@ -15,6 +15,9 @@ import numpy as np
 from evcap.errors import InputError
 from evcap.poses.frames import event_frames, frame_rate
 from evcap.poses.gravity import Gravity, gravity_up, level
+from evcap.poses.gyro import GyroFit, fit_gyro
+from evcap.poses.refine import Refined, refine_positions
+from evcap.poses.sfm import SfmResult, run_sfm
 from evcap.poses.track import PoseTrack
 from evcap.session import Session, stored_distortion, write_group
 from evcap.streams import Frames, ImuSamples
@@ -26,6 +29,10 @@ MIN_EVENTS = 10_000
 # 7 deg on the demo orbit, 17 deg with them and 2.2 deg without).
 APS_MAX_TURN_DEG = 2.0
 APS_MIN_RATE_HZ = 20.0  # without the IMU, the frames' rate stands in for the motion
+# the gyroscope's orientations are refused when the positions and points cannot be made to fit
+# them within this (reprojection, px RMS; on the demo's orbit 2.2 px, the frames' own 1.1):
+# the gyroscope's clock or axes are not the camera's
+MAX_GYRO_REPROJECTION_PX = 5.0
 
 
 @dataclass
@@ -41,6 +48,8 @@ class PosesResult:
     points: int  # 3D points of the model
     seconds: float  # structure from motion's time
     gravity: Gravity | None = None  # when the world was leveled with the IMU
+    gyro: GyroFit | None = None  # when the orientations are the gyroscope's
+    refined: Refined | None = None  # the positions adjusted to the gyroscope's orientations
 
     @property
     def registered(self) -> int:
@@ -50,7 +59,16 @@ class PosesResult:
         return (
             f"{self.registered} of {self.frames} frames registered ({self.kind} frames at "
             f"{self.rate_hz:.1f} Hz), {self.points:,} points, mean reprojection error "
-            f"{self.mean_reprojection_px:.3f} px; scale arbitrary; {self.up}"
+            f"{self.mean_reprojection_px:.3f} px; {self.turned}; scale arbitrary; {self.up}"
+        )
+
+    @property
+    def turned(self) -> str:
+        if self.gyro is None or self.refined is None:
+            return "orientations from the frames"
+        return (
+            f"{self.gyro.summary()}, positions adjusted to them (reprojection "
+            f"{self.refined.start_rms_px:.2f} -> {self.refined.rms_px:.2f} px RMS)"
         )
 
     @property
@@ -71,16 +89,18 @@ def estimate_poses(
     rate_hz: float | None = None,
     export_frames: str | Path | None = None,
     gravity: bool = True,
+    gyro: bool = True,
     aps: bool | None = None,
     threads: int = 1,
     say: Callable[[str], None] = lambda line: None,
     progress: Callable[[int, int, str], None] | None = None,
 ) -> PosesResult:
     """Make frames from the session's events and register them by structure from motion;
-    with ``gravity``, turn the world so that z is up when the session has the IMU. ``aps``:
+    with ``gyro``, take the orientations from the gyroscope when the session has it
+    (poses/gyro.py) and adjust the positions to them (poses/refine.py); with ``gravity``, turn
+    the world so that z is up when the session has the IMU. ``aps``:
     whether the filter's frames lean on the APS frames; None decides from the motion between
     them (`aps_frames_usable`). ``threads``: structure from motion's (see run_sfm)."""
-    from evcap.poses.sfm import run_sfm
 
     with Session.open(path) as s:
         if "calibration" not in s.groups or "K" not in s.group("calibration"):
@@ -136,6 +156,9 @@ def estimate_poses(
     say("structure from motion (pycolmap), intrinsics fixed to the calibration")
     sfm = run_sfm(list(images), times, K, dist, threads=threads, progress=progress)
     T_world_cam, up = sfm.T_world_cam, None
+    turned, refined = None, None
+    if gyro and len(imu) and sfm.observations is not None:
+        T_world_cam, turned, refined = gyro_poses(sfm, imu, K, dist, say)
     if gravity and len(imu) and len(sfm.t_us) >= 2:
         try:
             up = gravity_up(PoseTrack(sfm.t_us, T_world_cam), imu.t, imu.accel)
@@ -152,7 +175,35 @@ def estimate_poses(
         points=int(sfm.points),
         seconds=float(sfm.seconds),
         gravity=up,
+        gyro=turned,
+        refined=refined,
     )
+
+
+def gyro_poses(
+    sfm: SfmResult, imu: ImuSamples, K: np.ndarray, dist: np.ndarray, say: Callable[[str], None]
+) -> tuple[np.ndarray, GyroFit | None, Refined | None]:
+    """The registered frames' camera-to-world transforms with the gyroscope's orientations and
+    the positions adjusted to them; structure from motion's (and None, None), saying why, when
+    the gyroscope does not fit the frames."""
+    try:
+        turned = fit_gyro(sfm.t_us, sfm.T_world_cam[:, :3, :3], imu.t, imu.gyro)
+    except InputError as e:
+        say(f"orientations from the frames, not the gyroscope: {e}")
+        return sfm.T_world_cam, None, None
+    refined = refine_positions(
+        turned.R_world_cam, sfm.T_world_cam[:, :3, 3], sfm.points_xyz, sfm.observations, K, dist
+    )
+    if not refined.rms_px <= MAX_GYRO_REPROJECTION_PX:
+        say(
+            "orientations from the frames, not the gyroscope: the points fit the gyroscope's "
+            f"only to {refined.rms_px:.1f} px (are the IMU's axes and clock the camera's?)"
+        )
+        return sfm.T_world_cam, None, None
+    T = sfm.T_world_cam.copy()
+    T[:, :3, :3] = turned.R_world_cam
+    T[:, :3, 3] = refined.centres
+    return T, turned, refined
 
 
 def aps_frames_usable(frames: Frames, imu: ImuSamples) -> tuple[bool, str]:
@@ -188,6 +239,7 @@ def write_poses(path: str | Path, result: PosesResult) -> None:
             "interpolation": "linear position, slerp rotation",
             "scale": "arbitrary (structure from motion: no metric scale)",
             "up": result.up,
+            "orientations": result.turned,
             "registered": result.registered,
             "frames": result.frames,
             "rate_hz": result.rate_hz,

@@ -53,6 +53,15 @@ GLOBAL_BA_GROWTH = 1.4
 
 
 @dataclass
+class Observations:
+    """Which registered frame saw which 3D point where, one row per sighting."""
+
+    frame: np.ndarray  # [O] int64, index into SfmResult's registered frames
+    point: np.ndarray  # [O] int64, index into SfmResult.points_xyz
+    xy: np.ndarray  # [O, 2] float64, pixel (OpenCV: the top-left pixel's centre at 0, 0), distorted
+
+
+@dataclass
 class SfmResult:
     """The registered frames of the largest model, in time order."""
 
@@ -65,6 +74,9 @@ class SfmResult:
     model_count: int  # models COLMAP made (disconnected pieces); only the largest is kept
     seconds: float  # wall time of the whole run
     unregistered_times: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # [N-M]
+    # the model's points and where the registered frames saw them, for refining the poses
+    points_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # [P, 3]
+    observations: Observations | None = None
 
 
 def run_sfm(
@@ -136,6 +148,7 @@ def run_sfm(
     order = np.argsort(frames)
     frames = np.asarray(frames)[order]
     missing = np.setdiff1d(np.arange(n), frames)
+    points_xyz, observations = _observations(best, names, frames)
     report(n, n, f"mapping: {len(frames)} of {n} frames registered")
     return SfmResult(
         t_us=times_us[frames],
@@ -147,6 +160,28 @@ def run_sfm(
         model_count=count,
         seconds=time.perf_counter() - started,
         unregistered_times=times_us[missing],
+        points_xyz=points_xyz,
+        observations=observations,
+    )
+
+
+def _observations(model, names: list[str], frames: np.ndarray) -> tuple[np.ndarray, Observations]:
+    """The model's 3D points and their sightings, frames numbered as in ``frames`` (the
+    registered frames' indices into ``names``, in time order)."""
+    row = {int(f): i for i, f in enumerate(frames)}
+    index = {name: i for i, name in enumerate(names)}
+    xyz, frame, point, xy = [], [], [], []
+    for p in model.points3D.values():
+        for e in p.track.elements:
+            image = model.images[e.image_id]
+            frame.append(row[index[image.name]])
+            point.append(len(xyz))
+            xy.append(image.points2D[e.point2D_idx].xy)
+        xyz.append(p.xyz)
+    return np.asarray(xyz, np.float64).reshape(-1, 3), Observations(
+        np.asarray(frame, np.int64),
+        np.asarray(point, np.int64),
+        np.asarray(xy, np.float64).reshape(-1, 2) - 0.5,  # COLMAP's pixel centres are at 0.5
     )
 
 

@@ -1,0 +1,152 @@
+"""The camera's orientation from the gyroscope, tied to structure from motion's.
+
+Structure from motion on event frames gets the orientations a degree or several wrong, slowly
+varying along the path (the demo's orbit: 1.8 deg median, 5.7 deg at its ends), and the
+reconstruction inherits it. The gyroscope measures how the camera turns at 1 kHz: integrated,
+it gives the orientations up to one rotation (where the world is) and a drift (the gyroscope's
+bias). Both are fitted to the structure from motion's orientations; over a path of many
+frames their errors average out, the gyroscope's shape of the path does not.
+
+The gyroscope is taken in the camera's axes, as the accelerometer is (poses/gravity.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from evcap.errors import InputError
+
+MIN_SAMPLES = 50
+MIN_FRAMES = 5
+# the fit is refused when the gyroscope and the frames disagree by more than this (median,
+# after the fit): the IMU is not in the camera's axes, or the frames' poses are wrong
+MAX_DISAGREEMENT_DEG = 10.0
+# a gyroscope's zero-rate offset (MPU-6500: +-5 deg/s at most, a fraction of a degree per
+# second typically): a prior that keeps a short path's structure-from-motion errors from
+# passing for a drift
+BIAS_PRIOR_DEG_S = 0.5
+# structure from motion's orientation error on event frames. It varies slowly along the path
+# (one error shared by neighbouring frames, not one each), so the frames together weigh as one:
+# the bias is then found to about this over the path's duration, and a 1 s path leaves it to
+# the prior while a minute-long one is measured (on the demo's 1 s orbit, weighed frame by
+# frame, the fit took 3.1 deg/s of bias from the frames' errors; the gyroscope had none)
+ROTATION_NOISE_DEG = 2.0
+
+
+@dataclass
+class GyroFit:
+    R_world_cam: np.ndarray  # [M, 3, 3] orientations at the given times, from the gyroscope
+    bias: np.ndarray  # [3] rad/s, subtracted from the gyroscope's readings
+    samples: int
+    disagreement_deg: float  # median angle between the fitted and the given orientations
+
+    def summary(self) -> str:
+        return (
+            f"orientations from the gyroscope ({self.samples:,} samples, bias "
+            f"{np.degrees(np.linalg.norm(self.bias)):.2f} deg/s; "
+            f"{self.disagreement_deg:.2f} deg from the frames', median)"
+        )
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """[..., 3] -> [..., 3, 3] cross-product matrices."""
+    z = np.zeros(v.shape[:-1])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return np.stack(
+        [np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2
+    )
+
+
+def exp_so3(v: np.ndarray) -> np.ndarray:
+    """Rotation matrices [..., 3, 3] of rotation vectors [..., 3] (Rodrigues)."""
+    theta = np.linalg.norm(v, axis=-1)[..., None, None]
+    K = skew(v)
+    small = theta < 1e-8
+    t = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta**2 / 6, np.sin(t) / t)
+    b = np.where(small, 0.5 - theta**2 / 24, (1 - np.cos(t)) / t**2)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def log_so3(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors [..., 3] of rotation matrices [..., 3, 3] (angles below 180 deg)."""
+    c = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
+    theta = np.arccos(c)[..., None]
+    w = np.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1
+    )
+    s = np.sin(theta)
+    return np.where(theta < 1e-6, 0.5 * w, w * theta / (2 * np.where(s < 1e-12, 1.0, s)))
+
+
+def integrate(t_us: np.ndarray, gyro: np.ndarray, bias: np.ndarray) -> np.ndarray:
+    """Orientations [N, 3, 3] at the samples' times, relative to the first: each step turns
+    by the mean of its two readings (less the bias) over its length, in the camera's axes."""
+    dt = np.diff(t_us).astype(np.float64)[:, None] * 1e-6
+    steps = exp_so3((0.5 * (gyro[1:] + gyro[:-1]) - bias) * dt)
+    R = np.concatenate([np.eye(3)[None], steps])
+    shift = 1
+    while shift < len(R):  # prefix products in log2(N) vectorised rounds
+        R[shift:] = R[:-shift] @ R[shift:]
+        shift *= 2
+    return R
+
+
+def _at(R: np.ndarray, t_us: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """R sampled at ``t_us``, at ``times`` (inside), turning at constant rate in between."""
+    i = np.clip(np.searchsorted(t_us, times, side="right") - 1, 0, len(t_us) - 2)
+    s = ((times - t_us[i]) / np.maximum(t_us[i + 1] - t_us[i], 1))[:, None]
+    step = log_so3(np.swapaxes(R[i], -1, -2) @ R[i + 1])
+    return R[i] @ exp_so3(s * step)
+
+
+def _world(Rg: np.ndarray, R_frames: np.ndarray) -> np.ndarray:
+    """The rotation G minimising sum |G Rg_i - R_i|^2 (chordal mean)."""
+    U, _, Vt = np.linalg.svd(np.einsum("nij,nkj->ik", R_frames, Rg))
+    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+
+
+def fit_gyro(
+    t_us: np.ndarray, R_frames: np.ndarray, imu_t: np.ndarray, gyro: np.ndarray
+) -> GyroFit:
+    """Orientations at ``t_us`` from the gyroscope, tied to the frames' orientations
+    ``R_frames`` [M, 3, 3] (camera-to-world) by one rotation and the gyroscope's bias."""
+    t_us, imu_t = np.asarray(t_us, np.int64), np.asarray(imu_t, np.int64)
+    gyro = np.asarray(gyro, np.float64)
+    ok = np.isfinite(gyro).all(axis=1)
+    imu_t, gyro = imu_t[ok], gyro[ok]
+    inside = (t_us >= imu_t[0]) & (t_us <= imu_t[-1]) if len(imu_t) else np.zeros(len(t_us), bool)
+    if len(imu_t) < MIN_SAMPLES or inside.sum() < MIN_FRAMES or not inside.all():
+        raise InputError(
+            f"the gyroscope covers {int(inside.sum())} of the {len(t_us)} posed frames "
+            f"({len(imu_t)} samples): record with the IMU on for the whole path"
+        )
+    span = (imu_t >= t_us[0] - 10_000) & (imu_t <= t_us[-1] + 10_000)
+    imu_t, gyro = imu_t[span], gyro[span]
+    prior = np.sqrt(len(t_us)) * np.radians(ROTATION_NOISE_DEG) / np.radians(BIAS_PRIOR_DEG_S)
+
+    def residuals(bias: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        Rg = _at(integrate(imu_t, gyro, bias), imu_t, t_us)
+        R = _world(Rg, R_frames) @ Rg
+        r = log_so3(np.swapaxes(R_frames, -1, -2) @ R).ravel()
+        return np.concatenate([r, prior * bias]), R
+
+    bias = np.zeros(3)
+    for _ in range(5):  # Gauss-Newton on the bias (the world rotation is solved in closed form)
+        r, _ = residuals(bias)
+        J = np.stack([(residuals(bias + h)[0] - r) / 1e-6 for h in np.eye(3) * 1e-6], 1)
+        step = np.linalg.lstsq(J, -r, rcond=None)[0]
+        bias = bias + step
+        if np.linalg.norm(step) < 1e-7:
+            break
+    r, R = residuals(bias)
+    angles = np.linalg.norm(r[:-3].reshape(-1, 3), axis=1)
+    disagreement = float(np.degrees(np.median(angles)))
+    if disagreement > MAX_DISAGREEMENT_DEG:
+        raise InputError(
+            f"the gyroscope and the frames' orientations disagree by {disagreement:.1f} deg "
+            "(median): is the IMU in the camera's axes?"
+        )
+    return GyroFit(R, bias, len(imu_t), disagreement)
