@@ -3,7 +3,7 @@ trajectory (an orbit, and a hand-held path), the estimate aligned to the truth b
 then the reconstruction (`tiny`, stage I) of the single-object scene on the estimated poses
 against on the true ones. Prints the figures and writes results/poses.json.
 
-    python bench/poses.py [--scenes single_object charuco_board] [--frames filter]
+    python bench/poses.py [--scenes single_object charuco_board] [--frames filter] [--no-gyro]
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import RESULTS, report, session_of  # noqa: E402
 
 
-def poses_against_truth(path: Path, work: Path, kind: str) -> tuple[dict, Path]:
+def poses_against_truth(path: Path, work: Path, kind: str, gyro: bool) -> tuple[dict, Path]:
     """Estimate the poses of a copy of the session; errors after a similarity alignment.
     Returns the figures and the copy, whose /poses then holds the aligned estimate."""
     from evcap.poses.align import align_similarity, apply_similarity, pose_errors
@@ -34,7 +34,7 @@ def poses_against_truth(path: Path, work: Path, kind: str) -> tuple[dict, Path]:
     with Session.open(path) as s:
         truth = PoseTrack.from_session(s)
     t0 = time.perf_counter()
-    result = estimate_poses(copy, kind=kind)
+    result = estimate_poses(copy, kind=kind, gyro=gyro)
     seconds = time.perf_counter() - t0
     inside = (result.t_us >= truth.start) & (result.t_us <= truth.end)
     T_true = truth.at(result.t_us[inside])
@@ -49,9 +49,12 @@ def poses_against_truth(path: Path, work: Path, kind: str) -> tuple[dict, Path]:
     )
     s_, R, t = align_similarity(T_est[:, :3, 3], T_true[:, :3, 3])
     result.T_world_cam = apply_similarity(result.T_world_cam, s_, R, t)
+    if result.points_xyz is not None:
+        result.points_xyz = s_ * result.points_xyz @ R.T + t
     write_poses(copy, result)
-    name = f"{path.stem}_{kind}"
+    name = f"{path.stem}_{kind}" + ("" if gyro else "_no_gyro")
     figures = {
+        f"{name}_orientations": result.turned,
         f"{name}_frames": result.frames,
         f"{name}_registered": result.registered,
         f"{name}_rate_hz": result.rate_hz,
@@ -65,15 +68,17 @@ def poses_against_truth(path: Path, work: Path, kind: str) -> tuple[dict, Path]:
 
 
 def reconstruction_difference(true_session: Path, estimated: Path, work: Path) -> dict:
-    """Stage I (tiny) on the true poses and on the aligned estimated ones: held-out PSNR."""
+    """Stage I (tiny) on the true poses and on the aligned estimated ones: the held-out views'
+    object figures, and the whole image's."""
     from evcap.recon.reconstruct import reconstruct
 
     out = {}
     for name, session in (("true", true_session), ("estimated", estimated)):
         m = reconstruct(session, work / f"recon_{name}", preset="tiny", stage="radiance")
-        out[f"recon_{name}_poses_render_psnr_cc"] = m["render_psnr_cc"]
-    out["recon_psnr_cc_loss_db"] = (
-        out["recon_true_poses_render_psnr_cc"] - out["recon_estimated_poses_render_psnr_cc"]
+        for key in ("object_psnr_cc", "object_psnr_constant", "normal_mae_deg", "render_psnr_cc"):
+            out[f"recon_{name}_poses_{key}"] = m.get(key)
+    out["recon_object_psnr_cc_loss_db"] = (
+        out["recon_true_poses_object_psnr_cc"] - out["recon_estimated_poses_object_psnr_cc"]
     )
     return out
 
@@ -82,17 +87,18 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", nargs="+", default=["single_object", "charuco_board"])
     ap.add_argument("--frames", default="filter", choices=["filter", "e2vid", "firenet"])
+    ap.add_argument("--no-gyro", action="store_true", help="structure from motion's orientations")
     args = ap.parse_args()
-    figures: dict = {"frames": args.frames}
+    figures: dict = {"frames": args.frames, "gyro": not args.no_gyro}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         for scene in args.scenes:
             path = session_of(scene)
-            part, copy = poses_against_truth(path, work, args.frames)
+            part, copy = poses_against_truth(path, work, args.frames, not args.no_gyro)
             figures.update(part)
             if scene == "single_object":
                 figures.update(reconstruction_difference(path, copy, work))
-    report("poses", figures)
+    report("poses" if not args.no_gyro else "poses_no_gyro", figures)
 
 
 if __name__ == "__main__":

@@ -218,6 +218,7 @@ def _register(ctx: DemoContext) -> str:
     with Session.open(ctx.scene) as s:
         poses = s.group("poses")
         t, T, attrs = poses["t"][:], poses["T_world_cam"][:], dict(poses.attrs)
+        points = poses["points_xyz"][:] if "points_xyz" in poses else None
         gt = s.group("gt")
         truth = PoseTrack(gt["t"][:], gt["T_world_cam"][:])
     inside = (t >= truth.start) & (t <= truth.end)
@@ -226,7 +227,10 @@ def _register(ctx: DemoContext) -> str:
     attrs["rotation_median_deg"] = errors["rotation_median_deg"]
     attrs["translation_median_pct"] = errors["translation_median_pct"]
     T = apply_similarity(T, errors["scale"], errors["R"], errors["t"])
-    write_group(ctx.scene, "poses", {"t": t, "T_world_cam": T}, attrs, replace=True)
+    arrays = {"t": t, "T_world_cam": T}
+    if points is not None:
+        arrays["points_xyz"] = errors["scale"] * points @ errors["R"].T + errors["t"]
+    write_group(ctx.scene, "poses", arrays, attrs, replace=True)
     return (
         f"against the truth: rotation {errors['rotation_median_deg']:.2f} deg, translation "
         f"{errors['translation_median_pct']:.2f} % of the path (medians)"

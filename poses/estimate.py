@@ -14,7 +14,7 @@ import numpy as np
 
 from evcap.errors import InputError
 from evcap.poses.frames import event_frames, frame_rate
-from evcap.poses.gravity import Gravity, gravity_up, level
+from evcap.poses.gravity import Gravity, gravity_up, level, level_rotation
 from evcap.poses.gyro import GyroFit, fit_gyro
 from evcap.poses.refine import Refined, refine_positions
 from evcap.poses.sfm import SfmResult, run_sfm
@@ -48,6 +48,7 @@ class PosesResult:
     points: int  # 3D points of the model
     seconds: float  # structure from motion's time
     gravity: Gravity | None = None  # when the world was leveled with the IMU
+    points_xyz: np.ndarray | None = None  # [P, 3] the model's points, in the poses' world
     gyro: GyroFit | None = None  # when the orientations are the gyroscope's
     refined: Refined | None = None  # the positions adjusted to the gyroscope's orientations
 
@@ -155,14 +156,16 @@ def estimate_poses(
         say(f"frames written to {export_frames}")
     say("structure from motion (pycolmap), intrinsics fixed to the calibration")
     sfm = run_sfm(list(images), times, K, dist, threads=threads, progress=progress)
-    T_world_cam, up = sfm.T_world_cam, None
+    T_world_cam, up, points = sfm.T_world_cam, None, sfm.points_xyz
     turned, refined = None, None
     if gyro and len(imu) and sfm.observations is not None:
         T_world_cam, turned, refined = gyro_poses(sfm, imu, K, dist, say)
+        points = refined.points if refined is not None else points
     if gravity and len(imu) and len(sfm.t_us) >= 2:
         try:
             up = gravity_up(PoseTrack(sfm.t_us, T_world_cam), imu.t, imu.accel)
             T_world_cam = level(T_world_cam, up.up)
+            points = points @ level_rotation(up.up).T
         except InputError as e:  # the poses stand without it
             say(f"not leveled with the IMU: {e}")
     return PosesResult(
@@ -175,6 +178,7 @@ def estimate_poses(
         points=int(sfm.points),
         seconds=float(sfm.seconds),
         gravity=up,
+        points_xyz=points,
         gyro=turned,
         refined=refined,
     )
@@ -229,10 +233,13 @@ def aps_frames_usable(frames: Frames, imu: ImuSamples) -> tuple[bool, str]:
 
 def write_poses(path: str | Path, result: PosesResult) -> None:
     """Replace the session's /poses with ``result``."""
+    arrays = {"t": result.t_us, "T_world_cam": result.T_world_cam}
+    if result.points_xyz is not None:
+        arrays["points_xyz"] = result.points_xyz
     write_group(
         path,
         "poses",
-        {"t": result.t_us, "T_world_cam": result.T_world_cam},
+        arrays,
         {
             "source": f"evcap poses ({result.kind} frames, pycolmap)",
             "frame": "camera-to-world, OpenCV camera axes",

@@ -17,6 +17,9 @@ class RadianceConfig:
     resolution: float = 0.5  # render scale, relative to the sensor (1 = full)
     sh_degree: int = 1  # view dependence of the Gaussians' radiance (0..3)
     init_gaussians: int = 5000  # random points inside the volume the cameras look at
+    # the share of them started on structure from motion's points instead, when the poses come
+    # with them (`evcap poses` writes them beside the poses)
+    init_on_points: float = 0.0
     max_gaussians: int = 15_000  # densification stops growing beyond this
     init_size_px: float = 1.0  # largest starting size (sigma), in render pixels
     # events: the time grid the windows are aligned to, and the window lengths drawn
@@ -184,6 +187,8 @@ def check(config: RadianceConfig) -> None:
         raise InputError("frame_interval_ms must be > 0 and max_window_frames >= 1")
     if config.views_per_step < 2:
         raise InputError("views_per_step must be at least 2 (a window needs two views)")
+    if not 0 <= config.init_on_points <= 1:
+        raise InputError("init_on_points is a share of init_gaussians, in [0, 1]")
 
 
 def to_dict(config: RadianceConfig | MaterialConfig) -> dict:

@@ -51,6 +51,7 @@ class TrainingData:
     channel_weights: torch.Tensor  # [H * W, 3]: what each sensor pixel sees of (R, G, B)
     mask: torch.Tensor  # [H * W] bool: pixels the loss uses (hot pixels left out)
     volume: SceneVolume
+    points: np.ndarray | None = None  # [P, 3] structure from motion's points (/poses/points_xyz)
 
 
 def load_training_data(session: Session, config: RadianceConfig, device: str) -> TrainingData:
@@ -69,7 +70,11 @@ def load_training_data(session: Session, config: RadianceConfig, device: str) ->
     weights = CHANNEL_WEIGHTS[torch.from_numpy(optics.channels().astype(np.int64))]
     mask = torch.from_numpy(~optics.hot_pixels.ravel())
     grid = render_grid(optics, config.resolution, device)
-    return TrainingData(optics, track, windows, grid, weights.to(device), mask.to(device), volume)
+    g = session.group("poses")
+    points = g["points_xyz"][:].astype(np.float64) if "points_xyz" in g else None
+    return TrainingData(
+        optics, track, windows, grid, weights.to(device), mask.to(device), volume, points
+    )
 
 
 class RadianceField(torch.nn.Module):
@@ -155,7 +160,14 @@ def new_field(
     rng = np.random.default_rng(seed)
     poses = data.track.at(data.windows.frame_times)
     o = data.optics
-    points = sample_points(data.volume, poses, o.K, o.width, o.height, config.init_gaussians, rng)
+    points = np.zeros((0, 3))
+    if config.init_on_points > 0 and data.points is not None:
+        n = min(round(config.init_on_points * config.init_gaussians), config.init_gaussians)
+        points = on_points(data.points, data.volume, n, rng)
+    rest = config.init_gaussians - len(points)
+    if rest > 0:
+        randoms = sample_points(data.volume, poses, o.K, o.width, o.height, rest, rng)
+        points = np.concatenate([points, randoms])
     g = torch.Generator().manual_seed(seed)
     # no larger than init_size_px render pixels at the volume's distance: random points fill
     # the whole view, and large ones would overlap by hundreds at every pixel
@@ -165,6 +177,16 @@ def new_field(
     footprint = distance / float(data.grid.K[0, 0])
     gaussians = Gaussians.random(points, config.sh_degree, g, config.init_size_px * footprint)
     return RadianceField(gaussians, Background(config.background_size), backend).to(device)
+
+
+def on_points(
+    points: np.ndarray, volume: SceneVolume, n: int, rng: np.random.Generator
+) -> np.ndarray:
+    """Up to n of structure from motion's ``points`` [P, 3], drawn among those inside twice
+    the volume's ball (the scene's surfaces reach beyond where the cameras' axes meet)."""
+    if volume.converging:
+        points = points[np.linalg.norm(points - volume.center, axis=1) <= 2 * volume.radius]
+    return points[rng.permutation(len(points))[:n]]
 
 
 def train_radiance(

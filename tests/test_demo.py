@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from contextlib import contextmanager
 
 import pytest
@@ -39,6 +40,9 @@ def test_demo_runs_resumes_and_writes_the_report(tmp_path):
     state = json.loads((out / "demo.json").read_text())
     assert list(state["done"]) == steps
     assert all(state["done"][s]["summary"] and state["done"][s]["seconds"] > 0 for s in steps)
+    assert "orientations from the gyroscope" in state["done"][steps[3]]["summary"]
+    rotation = re.search(r"rotation ([0-9.]+) deg", state["done"][steps[4]]["summary"])
+    assert float(rotation.group(1)) < 0.5  # structure from motion's alone: 1.8 deg
     metrics = json.loads((out / "reconstruction" / "metrics.json").read_text())
     assert metrics["views"] == "held-out test views" and metrics["history"]
     assert metrics["pbr_render_psnr_cc"] > 15  # the pipeline works, even on estimated poses

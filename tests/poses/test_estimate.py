@@ -29,12 +29,19 @@ def test_poses_from_the_events(board_session, tmp_path, capsys):
         t, T = g["t"][()], g["T_world_cam"][()]
         made = int(g.attrs["frames"])
         assert g.attrs["registered"] == len(t) >= 0.4 * made  # the first: no history yet
+        points = g["points_xyz"][()]
+        assert points.shape == (int(g.attrs["points"]), 3) and np.isfinite(points).all()
+        assert g.attrs["orientations"] == "orientations from the frames"  # no IMU here
     assert len(list(frames.glob("*.png"))) == made
     # the estimate is a rigid path like the truth (a similarity maps one onto the other up to
     # the error); its accuracy is measured on full-size scenes in bench/poses.py, and run_sfm's
     # on rendered frames in test_sfm.py
     e = pose_errors(T, truth.at(t), by="poses")
     assert np.isfinite(e["rotation_rms_deg"]) and e["scale"] > 0
+    # the points are in the poses' world: the board lies in front of the cameras
+    middle = T[len(T) // 2]
+    depth = (points - middle[:3, 3]) @ middle[:3, 2]
+    assert np.median(depth) > 0
 
 
 def test_a_session_without_intrinsics_is_refused(board_session, tmp_path):

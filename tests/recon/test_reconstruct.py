@@ -15,7 +15,7 @@ import torch
 from evcap.errors import InputError
 from evcap.recon import config as cfg
 from evcap.recon.export import read_ply_header
-from evcap.recon.radiance import load_training_data, train_radiance
+from evcap.recon.radiance import load_training_data, new_field, train_radiance
 from evcap.recon.reconstruct import reconstruct
 from evcap.session import Session
 from evcap.sim.scene import load_scene
@@ -288,3 +288,29 @@ def test_the_background_alone_first_then_the_gaussians_with_fasts_terms(color_se
     assert torch.equal(means1, means2) and not torch.equal(faces1, faces2)  # hidden: bg only
     assert not torch.equal(means2, means4)  # then the Gaussians learn, every term finite
     assert np.isfinite([x.loss for x in fit.log]).all()
+
+
+def test_gaussians_start_on_the_poses_points_when_asked(color_session, tmp_path):
+    session = shutil.copy(color_session, tmp_path / "s.h5")
+    with Session.open(session) as s:
+        data = load_training_data(s, cfg.preset("tiny"), "cpu")
+    centre, radius = data.volume.center, data.volume.radius
+    rng = np.random.default_rng(0)
+    inside = centre + rng.normal(0, 0.3 * radius, (50, 3))
+    far = centre + np.array([10 * radius, 0, 0])  # an outlier of structure from motion
+    with h5py.File(session, "r+") as f:
+        f["poses"].create_dataset("points_xyz", data=np.vstack([inside, far]))
+    config = cfg.preset("tiny", init_gaussians=200, init_on_points=0.5)
+    with Session.open(session) as s:
+        data = load_training_data(s, config, "cpu")
+    means = new_field(data, config, 0, "cpu", "torch").gaussians.means.detach().numpy()
+    assert len(means) == 200
+    # the 50 points inside the volume's (doubled) ball, the outlier left out, then random ones
+    on = means[:50].astype(np.float64)
+    assert np.abs(np.sort(on, axis=0) - np.sort(inside, axis=0)).max() < 1e-5
+    assert not np.isclose(means[50:], far.astype(np.float32)).all(axis=1).any()
+    without = cfg.preset("tiny", init_gaussians=200)
+    random = new_field(data, without, 0, "cpu", "torch").gaussians.means.detach().numpy()
+    assert not np.isin(random, on.astype(np.float32)).all(axis=1).any()
+    with pytest.raises(InputError, match="init_on_points"):
+        cfg.preset("tiny", init_on_points=1.5)
