@@ -562,7 +562,8 @@ def _maps_section(out: Path, s: Session) -> str:
     if "radiance" in truth:
         intro += (
             " Radiance is shown after a per-channel gain and offset fitted to the truth "
-            "(events give radiance only up to a gain per channel), as the _cc metrics are."
+            "(events give radiance only up to a gain per channel) on the object's pixels where "
+            "the truth has depth, as object_psnr_cc is."
         )
     count = min([MAX_VIEWS, *(len(v["radiance"]) for _, _, v in stages if "radiance" in v)])
     tables = [_view_table(i, stages, truth) for i in range(count)]
@@ -596,6 +597,10 @@ def _view_table(i: int, stages: list, truth: dict) -> str:
             if key == "radiance" and "radiance" in truth:
                 pred, gt = views["radiance"], truth["radiance"]
                 if pred.shape == gt.shape and np.isfinite(pred).all():
+                    # fitted where object_psnr_cc is, on the object, when the truth says where
+                    surface = truth["depth"] > 0 if "depth" in truth else None
+                    if surface is not None and surface.shape == pred.shape[:-1] and surface.any():
+                        pred, gt = pred[surface], gt[surface]
                     cc = fit_color_correction(pred, gt)
                     value = value * cc[:, 0] + cc[:, 1]
             images[key] = _map_image(key, value, lo, hi)
