@@ -333,3 +333,23 @@ def test_opens_in_a_headless_browser(page, tmp_path):
     image = cv2.imread(str(shot))
     assert image is not None and image.shape[:2] == (3000, 1200)
     assert image.std() > 10  # not a blank page
+
+
+def test_the_radiance_is_color_corrected_on_the_objects_pixels():
+    from evcap.report.html import _view_table, srgb8
+
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0.1, 0.6, (1, H, W, 3)).astype(np.float32)
+    depth = np.zeros((1, H, W), np.float32)
+    depth[:, 5:25, 10:30] = 2.0  # the object
+    # the render is the truth at half gain on the object, a flat wrong color around it: fitted
+    # over the whole image the object would come out washed out
+    render = np.where(depth[..., None] > 0, 0.5 * truth, 0.9).astype(np.float32)
+    table = _view_table(
+        0, [("stage I", "test", {"radiance": render})], {"radiance": truth, "depth": depth}
+    )
+    uri = re.search(r'src="data:image/png;base64,([^"]+)"', table).group(1)
+    shown = cv2.imdecode(np.frombuffer(base64.b64decode(uri), np.uint8), cv2.IMREAD_COLOR)
+    expected = srgb8(truth[0])[..., ::-1]  # OpenCV decodes BGR
+    on = depth[0] > 0
+    assert np.abs(shown[on].astype(int) - expected[on].astype(int)).max() <= 1
