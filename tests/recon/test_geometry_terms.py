@@ -111,5 +111,5 @@ def test_hidden_gaussians_leave_the_background_alone():
     K = torch.tensor([[20.0, 0, 12], [0, 20.0, 9], [0, 0, 1]])
     g = RenderGrid(K, 24, 18, torch.zeros(1, 1, 1, 2))
     T = torch.eye(4).numpy()
-    assert float(field.render(T, g).alpha.max()) > 0.1
-    assert float(field.render(T, g, hidden=True).alpha.max()) == 0.0
+    assert float(field.render(T, g).alpha.detach().max()) > 0.1
+    assert float(field.render(T, g, hidden=True).alpha.detach().max()) == 0.0
