@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from evcap.errors import InputError, OutputExistsError
+from evcap.recon.config import PRESETS as RADIANCE_PRESETS
 
 FIXTURES = Path(__file__).resolve().parent.parent / "hw-fixtures"
 SCENE, CALIBRATION = "demo-scene", "demo-calibration"
@@ -34,9 +35,10 @@ STAGE_I = {
         "iterations": 1000,
         "resolution": 0.5,
         "sh_degree": 1,
-        "spread_weight": 10.0,
-        "background_first": 0.1,
-        "smooth_weight": 0.3,
+        **{
+            k: getattr(RADIANCE_PRESETS["fast"], k)
+            for k in ("spread_weight", "background_first", "smooth_weight")
+        },
         "init_on_points": 0.5,
     },
     "fast": {},

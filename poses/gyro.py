@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from evcap.errors import InputError
+from evcap.poses.track import PoseTrack, exp_so3, log_so3
 
 MIN_SAMPLES = 50
 MIN_FRAMES = 5
@@ -56,37 +57,6 @@ class GyroFit:
         )
 
 
-def skew(v: np.ndarray) -> np.ndarray:
-    """[..., 3] -> [..., 3, 3] cross-product matrices."""
-    z = np.zeros(v.shape[:-1])
-    x, y, w = v[..., 0], v[..., 1], v[..., 2]
-    return np.stack(
-        [np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2
-    )
-
-
-def exp_so3(v: np.ndarray) -> np.ndarray:
-    """Rotation matrices [..., 3, 3] of rotation vectors [..., 3] (Rodrigues)."""
-    theta = np.linalg.norm(v, axis=-1)[..., None, None]
-    K = skew(v)
-    small = theta < 1e-8
-    t = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0 - theta**2 / 6, np.sin(t) / t)
-    b = np.where(small, 0.5 - theta**2 / 24, (1 - np.cos(t)) / t**2)
-    return np.eye(3) + a * K + b * (K @ K)
-
-
-def log_so3(R: np.ndarray) -> np.ndarray:
-    """Rotation vectors [..., 3] of rotation matrices [..., 3, 3] (angles below 180 deg)."""
-    c = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
-    theta = np.arccos(c)[..., None]
-    w = np.stack(
-        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1
-    )
-    s = np.sin(theta)
-    return np.where(theta < 1e-6, 0.5 * w, w * theta / (2 * np.where(s < 1e-12, 1.0, s)))
-
-
 def integrate(t_us: np.ndarray, gyro: np.ndarray, bias: np.ndarray) -> np.ndarray:
     """Orientations [N, 3, 3] at the samples' times, relative to the first: each step turns
     by the mean of its two readings (less the bias) over its length, in the camera's axes."""
@@ -102,10 +72,9 @@ def integrate(t_us: np.ndarray, gyro: np.ndarray, bias: np.ndarray) -> np.ndarra
 
 def _at(R: np.ndarray, t_us: np.ndarray, times: np.ndarray) -> np.ndarray:
     """R sampled at ``t_us``, at ``times`` (inside), turning at constant rate in between."""
-    i = np.clip(np.searchsorted(t_us, times, side="right") - 1, 0, len(t_us) - 2)
-    s = ((times - t_us[i]) / np.maximum(t_us[i + 1] - t_us[i], 1))[:, None]
-    step = log_so3(np.swapaxes(R[i], -1, -2) @ R[i + 1])
-    return R[i] @ exp_so3(s * step)
+    T = np.tile(np.eye(4), (len(R), 1, 1))
+    T[:, :3, :3] = R
+    return PoseTrack(t_us, T).at(times)[:, :3, :3]
 
 
 def _world(Rg: np.ndarray, R_frames: np.ndarray) -> np.ndarray:
@@ -122,7 +91,8 @@ def fit_gyro(
     t_us, imu_t = np.asarray(t_us, np.int64), np.asarray(imu_t, np.int64)
     gyro = np.asarray(gyro, np.float64)
     ok = np.isfinite(gyro).all(axis=1)
-    imu_t, gyro = imu_t[ok], gyro[ok]
+    imu_t, first = np.unique(imu_t[ok], return_index=True)  # one sample per time, in order
+    gyro = gyro[ok][first]
     inside = (t_us >= imu_t[0]) & (t_us <= imu_t[-1]) if len(imu_t) else np.zeros(len(t_us), bool)
     if len(imu_t) < MIN_SAMPLES or inside.sum() < MIN_FRAMES or not inside.all():
         raise InputError(

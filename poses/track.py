@@ -12,6 +12,37 @@ from evcap.errors import InputError
 from evcap.session import Session
 
 
+def skew(v: np.ndarray) -> np.ndarray:
+    """[..., 3] -> [..., 3, 3] cross-product matrices."""
+    z = np.zeros(v.shape[:-1])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return np.stack(
+        [np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2
+    )
+
+
+def exp_so3(v: np.ndarray) -> np.ndarray:
+    """Rotation matrices [..., 3, 3] of rotation vectors [..., 3] (Rodrigues)."""
+    theta = np.linalg.norm(v, axis=-1)[..., None, None]
+    K = skew(v)
+    small = theta < 1e-8
+    t = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta**2 / 6, np.sin(t) / t)
+    b = np.where(small, 0.5 - theta**2 / 24, (1 - np.cos(t)) / t**2)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def log_so3(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors [..., 3] of rotation matrices [..., 3, 3] (angles below 180 deg)."""
+    c = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
+    theta = np.arccos(c)[..., None]
+    w = np.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1
+    )
+    s = np.sin(theta)
+    return np.where(theta < 1e-6, 0.5 * w, w * theta / (2 * np.where(s < 1e-12, 1.0, s)))
+
+
 def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
     """[..., 3, 3] rotation matrices to unit quaternions [..., 4] (w, x, y, z), w >= 0."""
     R = np.asarray(R, np.float64)

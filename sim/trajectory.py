@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from evcap.errors import InputError
+from evcap.poses.track import log_so3
 from evcap.sim.scene import TrajectorySpec
 
 GRAVITY = 9.80665  # m/s^2
@@ -32,16 +33,6 @@ def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
     axis = axis / np.linalg.norm(axis)
     k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
     return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
-
-
-def log_so3(r: np.ndarray) -> np.ndarray:
-    """The rotation vector (axis * angle) of a rotation matrix."""
-    cos = np.clip((np.trace(r) - 1) / 2, -1.0, 1.0)
-    angle = np.arccos(cos)
-    w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
-    if angle < 1e-9:
-        return w / 2
-    return w * angle / (2 * np.sin(angle))
 
 
 def _vec(params: dict, key: str, default) -> np.ndarray:
