@@ -46,6 +46,10 @@ def test_demo_runs_resumes_and_writes_the_report(tmp_path):
     metrics = json.loads((out / "reconstruction" / "metrics.json").read_text())
     assert metrics["views"] == "held-out test views" and metrics["history"]
     assert metrics["pbr_render_psnr_cc"] > 15  # the pipeline works, even on estimated poses
+    # the sphere is there, on estimated poses (measured: +2.3 dB, 23 deg, 5 %; tiny's own 150
+    # steps: +0.0 dB, 53 deg, 17 %)
+    assert metrics["object_psnr_cc"] > metrics["object_psnr_constant"] + 1.5
+    assert metrics["radiance_normal_mae_deg"] < 35 and metrics["depth_rel_err"] < 0.1
     page = report.read_text()
     assert "http://" not in page and "https://" not in page
 
