@@ -43,6 +43,8 @@ VARIANTS: dict[str, dict] = {
     "normal 0.2": {"normal_weight": 0.2},
     "normal late": {"normal_from": 0.3},
     "bound": {"zero_events": "bound"},
+    "silent 0.1": {"silent_weight": 0.1},
+    "quiet tv 1": {"quiet_tv_weight": 1.0},
 }
 COLUMNS = (
     "scene",

@@ -60,6 +60,7 @@ class RadianceConfig:
     smooth_weight: float = 0.0
     smooth_step: float = 0.02
     curvature_weight: float = 0.0  # losses.depth_curvature_loss
+    quiet_tv_weight: float = 0.0  # losses.quiet_variation_loss, where no event fired
     # Adam learning rates; positions scale with the scene's extent and decay to lr_means_final
     lr_means: float = 1.6e-4
     lr_means_final: float = 1.6e-6

@@ -46,6 +46,24 @@ def event_loss(
     ).sum() / quiet.sum().clamp(min=1)
 
 
+def quiet_variation_loss(log_image: torch.Tensor, loud: torch.Tensor) -> torch.Tensor:
+    """Mean |log L_p - log L_q| (all channels) between neighbouring sensor pixels [H, W, C]
+    where no event fired within a pixel of either (``loud`` [H, W]: pixels with events). What
+    no edge ever crosses, the events leave free: only the contrast at a patch's outline is
+    measured, and the inside relaxes toward anything (a box lit dark at its outline and grey
+    inside). Total variation carries the outline's level inward, and leaves the edges to the
+    events."""
+    near = F.max_pool2d(loud[None, None].to(log_image.dtype), 3, 1, 1)[0, 0] > 0
+    quiet = ~near
+    total, count = log_image.new_zeros(()), log_image.new_zeros(())
+    for dim in (0, 1):
+        size = log_image.shape[dim] - 1
+        m = (quiet.narrow(dim, 0, size) & quiet.narrow(dim, 1, size)).to(log_image.dtype)
+        total = total + (log_image.diff(dim=dim).abs().sum(-1) * m).sum()
+        count = count + m.sum()
+    return total / count.clamp(min=1)
+
+
 def anchor_loss(radiance: torch.Tensor, level: float) -> torch.Tensor:
     """(mean of the rendered pixels' (R + G + B) / 3 - g)^2: fixes the overall brightness."""
     return (radiance.mean() - level) ** 2

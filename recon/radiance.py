@@ -32,6 +32,7 @@ from evcap.recon.losses import (
     log_radiance,
     normal_loss,
     normal_smoothness_loss,
+    quiet_variation_loss,
 )
 from evcap.recon.optics import CHANNEL_WEIGHTS, RenderGrid, SensorOptics, render_grid
 from evcap.recon.rasterize import Camera, Render, rasterize
@@ -343,6 +344,15 @@ def _losses(
     an = anchor_loss(torch.cat(seen), config.anchor_level)
     total = ev + config.anchor_weight * an
     terms = {"event": ev.item(), "anchor": an.item(), "normal": 0.0}
+    if config.quiet_tv_weight > 0:
+        H, W = data.optics.height, data.optics.width
+        _, counts = data.windows.log_change(int(frames[0]), int(frames[-1]))
+        loud = ((counts.to(data.mask.device) > 0) | ~data.mask).reshape(H, W)
+        tv = sum(
+            quiet_variation_loss(log_radiance(s, config.log_eps).reshape(H, W, 3), loud)
+            for s in seen
+        )
+        total = total + config.quiet_tv_weight * tv / len(seen)
     if hidden:  # the background alone: the terms of the Gaussians wait for them
         return renders, total, terms
     if config.normal_weight > 0 and step > config.normal_from * config.iterations:

@@ -9,7 +9,12 @@ import torch
 from evcap.errors import InputError
 from evcap.recon import config as cfg
 from evcap.recon.gaussians import Background, Gaussians
-from evcap.recon.losses import depth_curvature_loss, depth_spread_loss, normal_smoothness_loss
+from evcap.recon.losses import (
+    depth_curvature_loss,
+    depth_spread_loss,
+    normal_smoothness_loss,
+    quiet_variation_loss,
+)
 from evcap.recon.optics import RenderGrid
 from evcap.recon.radiance import RadianceField
 from evcap.recon.rasterize import Camera, rasterize
@@ -103,6 +108,22 @@ def test_normals_are_smoothed_across_a_texture_edge_not_across_an_outline():
     crease = float(normal_smoothness_loss(normals, one_surface, opaque, 0.02))
     assert crease > 0.01
     assert float(normal_smoothness_loss(normals, outline, opaque, 0.02)) < 1e-3 * crease
+
+
+def test_variation_counts_where_no_event_fired_only():
+    _, xs = grid()
+    flat = torch.zeros(12, 16, 3)
+    none = torch.zeros(12, 16, dtype=torch.bool)
+    assert float(quiet_variation_loss(flat, none)) == 0.0
+    halo = flat.clone()
+    halo[:, 8:] = (0.1 * (xs[:, 8:] - 7))[..., None]  # brightening away from an edge
+    assert float(quiet_variation_loss(halo, none)) > 0.05
+    # the same ramp where events fired (within a pixel) is the events' to judge
+    loud = xs >= 7
+    assert float(quiet_variation_loss(halo, loud)) == 0.0
+    step = flat.clone()
+    step[:, 8:] = 1.0
+    assert float(quiet_variation_loss(step, (xs == 8) | (xs == 7))) == 0.0
 
 
 def test_hidden_gaussians_leave_the_background_alone():
