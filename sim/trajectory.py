@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from evcap.errors import InputError
-from evcap.poses.track import log_so3
+from evcap.poses.track import exp_so3, log_so3
 from evcap.sim.scene import TrajectorySpec
 
 GRAVITY = 9.80665  # m/s^2
@@ -30,9 +30,7 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = UP) -> np.ndar
 
 
 def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
-    axis = axis / np.linalg.norm(axis)
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+    return exp_so3(axis / np.linalg.norm(axis) * angle)
 
 
 def _vec(params: dict, key: str, default) -> np.ndarray:
