@@ -15,6 +15,9 @@ class RadianceConfig:
 
     iterations: int = 1000  # optimisation steps
     resolution: float = 0.5  # render scale, relative to the sensor (1 = full)
+    # coarse to fine: the first coarse_until of the run renders at coarse_resolution (0: never)
+    coarse_until: float = 0.0
+    coarse_resolution: float = 0.25
     sh_degree: int = 1  # view dependence of the Gaussians' radiance (0..3)
     init_gaussians: int = 5000  # random points inside the volume the cameras look at
     # the share of them started on structure from motion's points instead, when the poses come
@@ -178,8 +181,10 @@ def preset(name: str, **overrides: object) -> RadianceConfig:
 def check(config: RadianceConfig) -> None:
     if config.iterations < 1:
         raise InputError("iterations must be at least 1")
-    if not 0 < config.resolution <= 4:
+    if not 0 < config.resolution <= 4 or not 0 < config.coarse_resolution <= 4:
         raise InputError("resolution is a render scale in (0, 4]; 1 is the sensor's")
+    if not 0 <= config.coarse_until <= 1:
+        raise InputError("coarse_until is a fraction of the run, in [0, 1]")
     if not 0 <= config.sh_degree <= 3:
         raise InputError("sh_degree must be 0..3")
     if config.zero_events not in ("target", "bound"):

@@ -49,6 +49,7 @@ class TrainingData:
     track: PoseTrack
     windows: EventWindows
     grid: RenderGrid  # the training renders
+    coarse_grid: RenderGrid | None  # the renders of the run's first part (coarse to fine)
     channel_weights: torch.Tensor  # [H * W, 3]: what each sensor pixel sees of (R, G, B)
     mask: torch.Tensor  # [H * W] bool: pixels the loss uses (hot pixels left out)
     volume: SceneVolume
@@ -71,10 +72,11 @@ def load_training_data(session: Session, config: RadianceConfig, device: str) ->
     weights = CHANNEL_WEIGHTS[torch.from_numpy(optics.channels().astype(np.int64))]
     mask = torch.from_numpy(~optics.hot_pixels.ravel())
     grid = render_grid(optics, config.resolution, device)
+    coarse = render_grid(optics, config.coarse_resolution, device) if config.coarse_until else None
     g = session.group("poses")
     points = g["points_xyz"][:].astype(np.float64) if "points_xyz" in g else None
     return TrainingData(
-        optics, track, windows, grid, weights.to(device), mask.to(device), volume, points
+        optics, track, windows, grid, coarse, weights.to(device), mask.to(device), volume, points
     )
 
 
@@ -253,13 +255,16 @@ def train_radiance(
             step = steps.step
             sh_degree = min(config.sh_degree, (step - 1) // degree_every)
             frames = draw_frames(rng, len(data.windows), config)
-            renders, total, terms = _losses(field, data, config, frames, sh_degree, step)
+            grid = data.grid
+            if data.coarse_grid is not None and step <= config.coarse_until * config.iterations:
+                grid = data.coarse_grid
+            renders, total, terms = _losses(field, data, grid, config, frames, sh_degree, step)
             if not torch.isfinite(total):
                 raise NumericalError(f"stage I: the loss became {float(total)} at step {step}")
             total.backward()
             loss = total.item()
             for r in renders:
-                densifier.observe(r, data.grid.width, data.grid.height)
+                densifier.observe(r, grid.width, grid.height)
             for group in optimizer.param_groups:
                 if group["name"] == "means":
                     group["lr"] = means_lr(config, extent, step)
@@ -329,17 +334,19 @@ def windows_event_loss(
 def _losses(
     field: RadianceField,
     data: TrainingData,
+    grid: RenderGrid,
     config: RadianceConfig,
     frames: np.ndarray,
     sh_degree: int,
     step: int,
 ) -> tuple[list[Render], torch.Tensor, dict[str, float]]:
-    """The renders at the frames, and the loss of every window between two of them."""
+    """The renders on ``grid`` at the frames, and the loss of every window between two of
+    them."""
     poses = data.track.at(data.windows.frame_times[frames])
     spread = config.spread_weight > 0
     hidden = step <= config.background_first * config.iterations
-    renders = [field.render(T, data.grid, sh_degree, spread, hidden) for T in poses]
-    seen = [data.grid.sample(r.color[..., :3]) for r in renders]  # [H * W, 3], sensor pixels
+    renders = [field.render(T, grid, sh_degree, spread, hidden) for T in poses]
+    seen = [grid.sample(r.color[..., :3]) for r in renders]  # [H * W, 3], sensor pixels
     ev = windows_event_loss(data, config, frames, seen)
     an = anchor_loss(torch.cat(seen), config.anchor_level)
     total = ev + config.anchor_weight * an
@@ -356,7 +363,7 @@ def _losses(
     if hidden:  # the background alone: the terms of the Gaussians wait for them
         return renders, total, terms
     if config.normal_weight > 0 and step > config.normal_from * config.iterations:
-        nl = sum(normal_loss(r.normal, r.depth, r.alpha, data.grid.K) for r in renders)
+        nl = sum(normal_loss(r.normal, r.depth, r.alpha, grid.K) for r in renders)
         nl = nl / len(renders)
         total = total + config.normal_weight * nl
         terms["normal"] = nl.item()

@@ -15,7 +15,7 @@ import torch
 from evcap.errors import InputError
 from evcap.recon import config as cfg
 from evcap.recon.export import read_ply_header
-from evcap.recon.radiance import load_training_data, new_field, train_radiance
+from evcap.recon.radiance import RadianceField, load_training_data, new_field, train_radiance
 from evcap.recon.reconstruct import reconstruct
 from evcap.session import Session
 from evcap.sim.scene import load_scene
@@ -288,6 +288,26 @@ def test_the_background_alone_first_then_the_gaussians_with_fasts_terms(color_se
     assert torch.equal(means1, means2) and not torch.equal(faces1, faces2)  # hidden: bg only
     assert not torch.equal(means2, means4)  # then the Gaussians learn, every term finite
     assert np.isfinite([x.loss for x in fit.log]).all()
+
+
+def test_coarse_to_fine_renders_the_first_part_of_the_run_small(color_session, monkeypatch):
+    config = cfg.preset("tiny", iterations=4, coarse_until=0.5, coarse_resolution=0.125)
+    with Session.open(color_session) as session:
+        data = load_training_data(session, config, "cpu")
+    widths: list[int] = []
+    render = RadianceField.render
+
+    def spy(self, T, grid, *args, **kwargs):
+        widths.append(grid.width)
+        return render(self, T, grid, *args, **kwargs)
+
+    monkeypatch.setattr(RadianceField, "render", spy)
+    train_radiance(data, config)
+    half = 2 * config.views_per_step  # the renders of the first two of four steps
+    assert data.coarse_grid.width < data.grid.width
+    assert widths == [data.coarse_grid.width] * half + [data.grid.width] * half
+    with pytest.raises(InputError, match="coarse_until"):
+        cfg.preset("tiny", coarse_until=2.0)
 
 
 def test_gaussians_start_on_the_poses_points_when_asked(color_session, tmp_path):
