@@ -45,6 +45,7 @@ VARIANTS: dict[str, dict] = {
     "bound": {"zero_events": "bound"},
     "silent 0.1": {"silent_weight": 0.1},
     "quiet tv 1": {"quiet_tv_weight": 1.0},
+    "coarse to fine": {"coarse_until": 0.3, "coarse_resolution": 0.375},
 }
 COLUMNS = (
     "scene",
