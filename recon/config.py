@@ -181,8 +181,9 @@ def preset(name: str, **overrides: object) -> RadianceConfig:
 def check(config: RadianceConfig) -> None:
     if config.iterations < 1:
         raise InputError("iterations must be at least 1")
-    if not 0 < config.resolution <= 4 or not 0 < config.coarse_resolution <= 4:
-        raise InputError("resolution is a render scale in (0, 4]; 1 is the sensor's")
+    for name in ("resolution", "coarse_resolution"):
+        if not 0 < getattr(config, name) <= 4:
+            raise InputError(f"{name} is a render scale in (0, 4]; 1 is the sensor's")
     if not 0 <= config.coarse_until <= 1:
         raise InputError("coarse_until is a fraction of the run, in [0, 1]")
     if not 0 <= config.sh_degree <= 3:

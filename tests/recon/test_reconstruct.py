@@ -308,6 +308,8 @@ def test_coarse_to_fine_renders_the_first_part_of_the_run_small(color_session, m
     assert widths == [data.coarse_grid.width] * half + [data.grid.width] * half
     with pytest.raises(InputError, match="coarse_until"):
         cfg.preset("tiny", coarse_until=2.0)
+    with pytest.raises(InputError, match="coarse_resolution"):
+        cfg.preset("tiny", coarse_resolution=0.0)
 
 
 def test_gaussians_start_on_the_poses_points_when_asked(color_session, tmp_path):
