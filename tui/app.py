@@ -228,7 +228,14 @@ class MonitorApp(App):
         panel.set_class(bool(warnings), "alarm")
         panel.show("\n".join(warnings) or "none")
 
+    def _widgets_gone(self) -> bool:
+        # The capture thread's last messages can arrive while the app shuts down, after its
+        # screen's widgets are removed: there is nothing to draw then.
+        return not self.query("#device")
+
     def on_live_update(self, message: LiveUpdate) -> None:
+        if self._widgets_gone():
+            return
         s = message.snapshot
         self.query_one("#events", PixelView).show(s.image)
         if s.frame is not None and s.frame_t_us != self._frame_shown:
@@ -242,6 +249,8 @@ class MonitorApp(App):
             self._show_panels()
 
     def _show_panels(self) -> None:
+        if self._widgets_gone():
+            return
         update = self._last_update
         snapshot = update.snapshot if update is not None else None
         self._show_device(snapshot)

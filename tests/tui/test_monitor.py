@@ -16,6 +16,7 @@ from evcap.acquire.recorder import Recorder
 from evcap.events import Channel, pixel_channels
 from evcap.session import Session
 from evcap.tui import make_app
+from evcap.tui.messages import CaptureEnded
 from evcap.tui.screens import BiasScreen
 from evcap.tui.widgets import RateChart
 
@@ -311,6 +312,21 @@ def test_disk_almost_full_warning(tmp_path):
             text = screen_text(app)
             assert "disk almost full" in text and "500.00 MB free" in text
             await pilot.press("q")
+
+    with cam:
+        run(script)
+
+
+def test_the_capture_ending_after_the_app_shut_down_is_no_error(tmp_path):
+    """The capture thread's last message can arrive while the app shuts down (CI saw it after
+    q): its widgets are gone then, and the monitor draws nothing instead of failing."""
+    cam, app = monitor(idle_copy(tmp_path), speed=1.0, tmp_path=tmp_path)
+
+    async def script():
+        async with app.run_test(size=(100, 32)) as pilot:
+            await pilot.pause(0.3)
+            await pilot.press("q")
+        app.on_capture_ended(CaptureEnded())
 
     with cam:
         run(script)
