@@ -207,6 +207,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
     if (args.scene is None) == (args.from_images is None):
         raise InputError("give a scene file, or --from-images TRANSFORMS (not both)")
+    if args.held_out and not args.from_images:
+        raise InputError("--held-out goes with --from-images")
     if args.from_images:
         from evcap.sim.from_images import simulate_from_images
 
@@ -214,6 +216,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
             n = simulate_from_images(
                 args.from_images,
                 args.output,
+                held_out=args.held_out,
+                background=args.background,
                 fps=args.fps,
                 color_filter=args.color_filter,
                 threshold=args.threshold,
@@ -498,7 +502,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--from-images",
         metavar="TRANSFORMS",
-        help="a NeRF-style transforms.json: events from its posed images",
+        help="a NeRF-style transforms.json: events from its posed images, in their order",
+    )
+    p.add_argument(
+        "--held-out",
+        metavar="TRANSFORMS",
+        help="--from-images: a second transforms file whose views are the held-out views "
+        "(never used for events); default: every 8th view of the path",
+    )
+    p.add_argument(
+        "--background",
+        type=float,
+        default=1.0,
+        help="--from-images: the gray level (linear, 0-1) RGBA images are composited over "
+        "(default 1: white, the NeRF-Synthetic convention)",
     )
     p.add_argument("--fps", type=float, default=30.0, help="--from-images: images per second")
     p.add_argument(

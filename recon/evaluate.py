@@ -72,10 +72,19 @@ def test_views(session: Session) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     return g["test_T_world_cam"][:], truth
 
 
+def object_mask(truth: dict[str, np.ndarray]) -> np.ndarray | None:
+    """The object's pixels of the held-out views: the truth's mask (images with alpha), else
+    where its depth has a surface; None when it has neither."""
+    if "mask" in truth:
+        return truth["mask"].astype(bool)
+    return truth["depth"] > 0 if "depth" in truth else None
+
+
 def metrics(views: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -> dict[str, float | None]:
     out: dict[str, float | None] = {}
-    if "radiance" in truth and "depth" in truth:
-        out.update(object_metrics(views["radiance"], truth["radiance"], truth["depth"]))
+    mask = object_mask(truth)
+    if "radiance" in truth and mask is not None:
+        out.update(object_metrics(views["radiance"], truth["radiance"], mask))
     if "radiance" in truth:
         out["blur_psnr"] = blur_psnr(truth["radiance"])
         out.update(image_metrics(views["radiance"], truth["radiance"], "render"))

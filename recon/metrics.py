@@ -73,12 +73,11 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray, prefix: str) -> dict[str, fl
 BLUR_PX = 25  # the blur of blur_psnr: a Gaussian of this standard deviation, in sensor pixels
 
 
-def object_metrics(pred: np.ndarray, gt: np.ndarray, gt_depth: np.ndarray) -> dict[str, float]:
-    """Figures of linear renders [N, H, W, 3] on the object's pixels (``gt_depth`` > 0):
+def object_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict[str, float]:
+    """Figures of linear renders [N, H, W, 3] on the object's pixels (``mask`` [N, H, W]):
     sRGB PSNR and mean SSIM after a color correction fitted there, and the PSNR of the best
     single constant color over all views (the mean of the truth's sRGB there); {} without
     an object."""
-    mask = gt_depth > 0
     if not mask.any():
         return {}
     truth = srgb(gt)

@@ -19,7 +19,13 @@ import torch
 from evcap.errors import InputError
 from evcap.recon import config as cfg
 from evcap.recon import resume as resume_
-from evcap.recon.evaluate import material_metrics, metrics, render_views, test_views
+from evcap.recon.evaluate import (
+    material_metrics,
+    metrics,
+    object_mask,
+    render_views,
+    test_views,
+)
 from evcap.recon.export import (
     load_checkpoint,
     save_checkpoint,
@@ -266,8 +272,9 @@ def _stage_radiance(
         views = render_views(field, poses[:HISTORY_VIEWS], data.optics, device)
         seen = {k: v[:HISTORY_VIEWS] for k, v in truth.items()}
         out = image_metrics(views["radiance"], seen["radiance"], "render")
-        if "depth" in seen:
-            out.update(object_metrics(views["radiance"], seen["radiance"], seen["depth"]))
+        mask = object_mask(seen)
+        if mask is not None:
+            out.update(object_metrics(views["radiance"], seen["radiance"], mask))
         if "normal" in seen:
             out["normal_mae_deg"] = normal_mae_deg(views["normal"], seen["normal"])
         return out

@@ -12,8 +12,14 @@ back along straight-line motion and blended (in linear radiance). Poses in betwe
 interpolated (position linearly, rotation by slerp). The pixel model then runs on the frames as
 its samples (evcap.sim.events), so all the sensor effects apply.
 
-Held-out views: with transforms_train.json, the images of transforms_test.json beside it;
+Held-out views: those of a second transforms file (``held_out``), never used for events;
 otherwise every 8th image of the sequence (which is then not used for the events).
+
+Truth: the images' alpha is the object's mask; depth comes from the dataset's depth renders
+(NeRF-Synthetic's encoding, see decode_depth), normals from that depth (the release's normal
+renders hold the world normal clipped to [0, 1] through a tone curve: its negative components
+are lost). Held-out views without depth renders get both drawn in from the path's views
+(splat_truth).
 """
 
 from __future__ import annotations
@@ -34,6 +40,8 @@ from evcap.sim.sensor import ChannelMap
 from evcap.sim.simulate import EPOCH_US
 
 BLENDER_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
+DEPTH_RANGE_M = 8.0  # NeRF-Synthetic's depth renders: v = 1 - distance / 8
+DEPTH_STEP_M = DEPTH_RANGE_M / 255  # their 8-bit quantization
 
 
 @dataclass
@@ -65,7 +73,7 @@ def read_transforms(path: Path, scale: float = 1.0) -> PosedImages:
         poses.append(m @ BLENDER_TO_OPENCV)
     if len(images) < 2:
         raise InputError(f"{path}: needs at least two frames")
-    h, w = _read(images[0], scale).shape[:2]
+    h, w = _read(images[0], scale)[0].shape[:2]
     if "fl_x" in doc:
         fx, fy = doc["fl_x"] * scale, doc.get("fl_y", doc["fl_x"]) * scale
         cx, cy = (
@@ -80,7 +88,7 @@ def read_transforms(path: Path, scale: float = 1.0) -> PosedImages:
     return PosedImages(images, np.array(poses), np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]))
 
 
-def _image(path: Path, scale: float) -> np.ndarray:
+def _image(path: Path, scale: float, interpolation: int | None = None) -> np.ndarray:
     """An image file as stored (BGR or BGRA or gray), scaled to [0, 1]."""
     import cv2
 
@@ -88,40 +96,146 @@ def _image(path: Path, scale: float) -> np.ndarray:
     if img is None:
         raise InputError(f"{path}: cannot read the image")
     if scale != 1.0:
-        img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        how = cv2.INTER_AREA if interpolation is None else interpolation
+        img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=how)
     return img.astype(np.float64) / (65535.0 if img.dtype == np.uint16 else 255.0)
 
 
-def _read(path: Path, scale: float, background: float = 1.0) -> np.ndarray:
-    """An image as linear RGB (RGBA composited on a gray level ``background``)."""
+def _read(
+    path: Path, scale: float, background: float = 1.0
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """An image as linear RGB, RGBA composited over a gray level ``background`` (linear);
+    and its alpha (None without one)."""
     img = _image(path, scale)
     if img.ndim == 2:
         img = np.repeat(img[..., None], 3, axis=2)
     rgb = srgb_to_linear(img[..., 2::-1] if img.shape[2] >= 3 else img)
-    if img.shape[2] == 4:
-        alpha = img[..., 3:4]
-        rgb = rgb * alpha + background * (1 - alpha)
-    return rgb
+    if img.shape[2] != 4:
+        return rgb, None
+    alpha = img[..., 3]
+    return rgb * alpha[..., None] + background * (1 - alpha[..., None]), alpha
 
 
-def _maps(images: list[Path], scale: float) -> dict[str, np.ndarray]:
-    """The dataset's own depth and normal images (NeRF-Synthetic names them
-    ``r_7_depth_0000.png``, ``r_7_normal_0000.png``), when every image has one; values in
-    [0, 1] exactly as stored (NeRF-Synthetic depth is not metric)."""
-    out = {}
-    for kind in ("depth", "normal"):
-        names = [p.with_name(f"{p.stem}_{kind}_0000.png") for p in images]
-        if not names or not all(n.exists() for n in names):
-            continue
-        maps = []
-        for n in names:
-            img = _image(n, scale).astype(np.float32)
-            if kind == "depth":
-                maps.append(img[..., 0] if img.ndim == 3 else img)
-            else:
-                maps.append(img[..., 2::-1] if img.ndim == 3 else np.repeat(img[..., None], 3, 2))
-        out[f"{kind}_image"] = np.stack(maps)
-    return out
+def depth_render(image: Path) -> Path | None:
+    """The dataset's depth render of an image (NeRF-Synthetic: ``r_7_depth_0186.png`` beside
+    ``r_7.png``), if there is one."""
+    found = sorted(image.parent.glob(f"{image.stem}_depth_*.png"))
+    return found[0] if found else None
+
+
+def rays(K: np.ndarray, h: int, w: int) -> np.ndarray:
+    """[H, W, 3] camera-frame directions with z = 1."""
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    return np.stack([(xx - K[0, 2]) / K[0, 0], (yy - K[1, 2]) / K[1, 1], np.ones_like(xx)], -1)
+
+
+def decode_depth(path: Path, scale: float, K: np.ndarray) -> np.ndarray:
+    """A depth render as camera z [H, W] (0 where it has no surface). NeRF-Synthetic's 8-bit
+    renders hold v = 1 - distance / DEPTH_RANGE_M, the distance along the ray from the camera
+    centre, 0 where nothing was hit (docs/reconstruction.md says how this was established).
+    Scaled down, the distance is averaged over the pixels that have a surface."""
+    import cv2
+
+    v = _image(path, 1.0)
+    v = v[..., 0] if v.ndim == 3 else v
+    hit = (v > 0).astype(np.float64)
+    distance = DEPTH_RANGE_M * (1.0 - v) * hit
+    if scale != 1.0:
+        size = (round(v.shape[1] * scale), round(v.shape[0] * scale))
+        area = cv2.resize(hit, size, interpolation=cv2.INTER_AREA)
+        distance = cv2.resize(distance, size, interpolation=cv2.INTER_AREA)
+        hit = area > 0.99  # no pixel straddles the silhouette
+        distance = np.where(hit, distance / np.maximum(area, 1e-9), 0.0)
+    r = rays(K, *distance.shape)
+    return (distance / np.linalg.norm(r, axis=-1)).astype(np.float32)
+
+
+def normals_from_depth(z: np.ndarray, K: np.ndarray, step: int = 2) -> np.ndarray:
+    """Camera-frame unit normals [H, W, 3] of a depth map, from central differences over
+    ``step`` pixels of its back-projected points, facing the camera; 0 within ``step`` pixels
+    of the silhouette and where the surface is not smooth (a depth step between parts)."""
+    import cv2
+
+    surface = z > 0
+    p = rays(K, *z.shape) * z[..., None]
+    dx = np.roll(p, -step, 1) - np.roll(p, step, 1)
+    dy = np.roll(p, -step, 0) - np.roll(p, step, 0)
+    n = np.cross(dx, dy)
+    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    n *= -np.sign((n * p).sum(-1, keepdims=True))
+    # One-sided differences that disagree by more than 3x: a fold or a step, not a surface.
+    fwd = np.linalg.norm(np.roll(p, -step, 1) - p, axis=-1) + np.linalg.norm(
+        np.roll(p, -step, 0) - p, axis=-1
+    )
+    back = np.linalg.norm(p - np.roll(p, step, 1), axis=-1) + np.linalg.norm(
+        p - np.roll(p, step, 0), axis=-1
+    )
+    smooth = np.maximum(fwd, back) < 3 * np.minimum(fwd, back) + 4 * DEPTH_STEP_M
+    kernel = np.ones((2 * step + 1, 2 * step + 1), np.uint8)
+    inside = cv2.erode(surface.astype(np.uint8), kernel) > 0
+    return np.where((inside & smooth)[..., None], n, 0).astype(np.float32)
+
+
+def view_truth(
+    image: Path, K: np.ndarray, scale: float, background: float
+) -> dict[str, np.ndarray]:
+    """What a view's files give as truth: ``radiance`` (linear), ``mask`` (alpha > 0.5, for
+    RGBA images), ``depth`` (camera z) and ``normal`` (camera axes, from the depth) where the
+    view has a depth render."""
+    rgb, alpha = _read(image, scale, background)
+    truth = {"radiance": rgb.astype(np.float32)}
+    if alpha is not None:
+        truth["mask"] = alpha > 0.5
+    depth = depth_render(image)
+    if depth is not None:
+        truth["depth"] = decode_depth(depth, scale, K)
+        truth["normal"] = normals_from_depth(truth["depth"], K)
+    return truth
+
+
+def splat_truth(
+    T_world_cam: np.ndarray,
+    K: np.ndarray,
+    mask: np.ndarray,
+    sources: list[tuple[np.ndarray, dict[str, np.ndarray]]],
+) -> dict[str, np.ndarray]:
+    """Depth and normal truth of a view without depth render, from the views that have one
+    (pose, truth): their surface points and normals drawn into it, the nearest per pixel. Kept
+    only inside ``mask`` and where the nearest point is no farther than the 5 x 5
+    neighbourhood's nearest plus 2 %: a point seen through a gap between drawn points lies
+    behind the surface. Pixels left without one stay 0 (not scored)."""
+    import cv2
+
+    h, w = mask.shape
+    zbuf = np.full(h * w, np.inf)
+    nbuf = np.zeros((h * w, 3))
+    world_to_cam = np.linalg.inv(T_world_cam)
+    for T, truth in sources:
+        ok = np.linalg.norm(truth["normal"], axis=-1) > 0.5
+        p = rays(K, h, w)[ok] * truth["depth"][ok][:, None]
+        to_target = world_to_cam @ T
+        q = p @ to_target[:3, :3].T + to_target[:3, 3]
+        n = truth["normal"][ok] @ to_target[:3, :3].T
+        front = q[:, 2] > 1e-6
+        q, n = q[front], n[front]
+        u = np.round(q[:, 0] / q[:, 2] * K[0, 0] + K[0, 2]).astype(np.int64)
+        v = np.round(q[:, 1] / q[:, 2] * K[1, 1] + K[1, 2]).astype(np.int64)
+        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        pix, z, n = v[inside] * w + u[inside], q[inside, 2], n[inside]
+        order = np.argsort(-z)  # nearest last: it wins the assignment
+        pix, z, n = pix[order], z[order], n[order]
+        nearer = z < zbuf[pix]
+        zbuf[pix[nearer]] = z[nearer]
+        nbuf[pix[nearer]] = n[nearer]
+    zbuf = zbuf.reshape(h, w)
+    local_min = cv2.erode(
+        np.where(np.isfinite(zbuf), zbuf, 1e9).astype(np.float32), np.ones((5, 5))
+    )
+    keep = mask & np.isfinite(zbuf) & (zbuf <= 1.02 * local_min)
+    return {
+        "depth": np.where(keep, zbuf, 0).astype(np.float32),
+        "normal": np.where(keep[..., None], nbuf.reshape(h, w, 3), 0).astype(np.float32),
+    }
 
 
 def _flow(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -163,10 +277,42 @@ def interpolate(a: np.ndarray, b: np.ndarray, max_step_px: float) -> list[tuple[
     return out
 
 
+def _held_out(
+    data: PosedImages, held_out: Path | None, scale: float, test_views: int
+) -> tuple[np.ndarray, PosedImages | None]:
+    """Which of the path's views make events, and the held-out views: ``test_views`` of the
+    held-out file's views, evenly spread; without one, every 8th view of the path (then not
+    used for events)."""
+    n = len(data.images)
+    if held_out is not None:
+        other = read_transforms(held_out, scale)
+        if not np.allclose(other.K, data.K, rtol=1e-6):
+            raise InputError(f"{held_out}: another camera than the path's ({held_out} vs path)")
+        pick = np.unique(np.linspace(0, len(other.images) - 1, test_views).round().astype(int))
+        test = PosedImages([other.images[i] for i in pick], other.poses[pick], other.K)
+        return np.arange(n), test if test_views > 0 else None
+    held = np.arange(n) % 8 == 7
+    if test_views <= 0 or not held.any():
+        return np.arange(n), None
+    pick = np.flatnonzero(held)[:test_views]
+    test = PosedImages([data.images[i] for i in pick], data.poses[pick], data.K)
+    return np.flatnonzero(~held), test
+
+
+def _nearest(
+    T: np.ndarray, poses: np.ndarray, truth: list[dict], count: int = 24
+) -> list[tuple[np.ndarray, dict]]:
+    """The ``count`` path views whose viewing directions are nearest T's."""
+    cos = (poses[:, :3, 2] * T[:3, 2]).sum(-1)
+    return [(poses[i], truth[i]) for i in np.argsort(-cos)[:count]]
+
+
 def simulate_from_images(
     transforms: str | Path,
     output: str | Path,
     *,
+    held_out: str | Path | None = None,
+    background: float = 1.0,
     fps: float = 30.0,
     color_filter: str = "RGBG",
     threshold: float = 0.2,
@@ -179,48 +325,37 @@ def simulate_from_images(
     overwrite: bool = False,
     progress: Callable[[float, float], None] | None = None,
 ) -> int:
-    """Events from the posed images into the session ``output``; returns the event count."""
+    """Events from the posed images into the session ``output``; returns the event count.
+    The camera moves through ``transforms``' views in order; ``held_out``, a second transforms
+    file, gives the held-out views (see _held_out). RGBA images are composited over the gray
+    level ``background`` (linear; 1 is the release's white)."""
     transforms, output = Path(transforms), Path(output)
     if output.exists() and not overwrite:
         raise InputError(f"{output} exists; choose another name or pass --force")
+    if not 0.0 <= background <= 1.0:
+        raise InputError(f"background must be a gray level in [0, 1], not {background}")
     data = read_transforms(transforms, scale)
-    test = None
-    sibling = transforms.with_name("transforms_test.json")
-    if transforms.name == "transforms_train.json" and sibling.exists():
-        test = read_transforms(sibling, scale)
-        test = PosedImages(test.images[:test_views], test.poses[:test_views], test.K)
-        keep = np.arange(len(data.images))
-    else:
-        held = np.arange(len(data.images)) % 8 == 7
-        if test_views > 0 and held.any():
-            test = PosedImages(
-                [p for p, h in zip(data.images, held, strict=True) if h],
-                data.poses[held][:test_views],
-                data.K,
-            )
-            test.images = test.images[:test_views]
-        keep = np.flatnonzero(~held) if test_views > 0 else np.arange(len(data.images))
+    keep, test = _held_out(data, None if held_out is None else Path(held_out), scale, test_views)
     images = [data.images[i] for i in keep]
     poses = data.poses[keep]
-    first = _read(images[0], scale)
-    h, w = first.shape[:2]
+    first = view_truth(images[0], data.K, scale, background)
+    h, w = first["radiance"].shape[:2]
     rng = np.random.default_rng(seed)
     channels = ChannelMap(w, h, color_filter)
     pixels = PixelArray(w * h, threshold, threshold, effects or {}, rng)
     sensor = SensorInfo("simulated", w, h, color_filter, "SIM-images", EPOCH_US)
     n_events = 0
-    gt_t = []
-    gt_radiance = []
+    gt_t = [0]
+    path_truth = [first]
     with SessionWriter(
         output, sensor, attrs={"source_file": str(transforms)}, overwrite=overwrite
     ) as writer:
-        prev = first
+        prev = first["radiance"].astype(np.float64)
         pixels.start(channels.log(prev.reshape(-1, 3), dark_level), 0.0)
-        gt_t.append(0)
-        gt_radiance.append(prev.astype(np.float32))
         period = 1e6 / fps
         for k in range(1, len(images)):
-            cur = _read(images[k], scale)
+            truth = view_truth(images[k], data.K, scale, background)
+            cur = truth["radiance"].astype(np.float64)
             t0, t1 = (k - 1) * period, k * period
             frames = [(0.0, prev)] + interpolate(prev, cur, max_step_px) + [(1.0, cur)]
             times = np.array([t0 + s * (t1 - t0) for s, _ in frames])
@@ -241,25 +376,31 @@ def simulate_from_images(
             )
             n_events += len(et)
             gt_t.append(int(round(t1)))
-            gt_radiance.append(cur.astype(np.float32))
+            path_truth.append(truth)
             prev = cur
             if progress:
                 progress(k, len(images) - 1)
     datasets = {
         "t": np.array(gt_t, np.int64),
-        "radiance": np.stack(gt_radiance),
         "T_world_cam": poses,
         "K": data.K,
         "threshold_on": pixels.con.reshape(h, w).astype(np.float32),
         "threshold_off": pixels.coff.reshape(h, w).astype(np.float32),
-        **_maps(images, scale),
     }
-    if test is not None and len(test.images):
+    for name in ("radiance", "mask", "depth", "normal"):
+        if all(name in t for t in path_truth):
+            datasets[name] = np.stack([t[name] for t in path_truth])
+    if test is not None:
         datasets["test_T_world_cam"] = test.poses
-        datasets["test_radiance"] = np.stack(
-            [_read(p, scale).astype(np.float32) for p in test.images]
-        )
-        datasets.update({f"test_{k}": v for k, v in _maps(test.images, scale).items()})
+        views = [view_truth(p, data.K, scale, background) for p in test.images]
+        if "depth" in datasets and "mask" in views[0] and not all("depth" in v for v in views):
+            views = [
+                {**v, **splat_truth(T, data.K, v["mask"], _nearest(T, poses, path_truth))}
+                for v, T in zip(views, test.poses, strict=True)
+            ]
+        for name in ("radiance", "mask", "depth", "normal"):
+            if all(name in v for v in views):
+                datasets[f"test_{name}"] = np.stack([v[name] for v in views])
     write_group(
         output,
         "gt",
@@ -267,9 +408,11 @@ def simulate_from_images(
         {
             "source": "evcap simulate --from-images",
             "images": str(transforms),
-            "radiance": "linear RGB from the sRGB images",
-            "depth_image": "the dataset's depth images in [0, 1], as stored (not metric)",
-            "normal_image": "the dataset's normal images, RGB in [0, 1], as stored",
+            "radiance": f"linear RGB from the sRGB images, over a background of {background}",
+            "mask": "the images' alpha > 0.5 (the object's pixels)",
+            "depth": "camera z decoded from the depth renders (0: no surface)",
+            "normal": "camera axes, from the depth renders (0: not determined)",
+            "held_out": str(held_out) if held_out is not None else "every 8th view of the path",
         },
     )
     write_group(

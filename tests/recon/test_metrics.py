@@ -22,7 +22,7 @@ def scene() -> tuple[np.ndarray, np.ndarray]:
 
 def test_the_truth_scores_far_above_a_constant(scene):
     radiance, depth = scene
-    m = object_metrics(radiance, radiance, depth)
+    m = object_metrics(radiance, radiance, depth > 0)
     assert m["object_psnr_cc"] > 60 and m["object_ssim_cc"] > 0.99
     assert m["object_psnr_constant"] < 15  # the checker: 0.1 against 0.7 at its brightest
 
@@ -31,7 +31,7 @@ def test_a_constant_object_scores_no_better_than_the_constant(scene):
     radiance, depth = scene
     pred = radiance.copy()
     pred[depth > 0] = radiance[depth > 0].mean(0)
-    m = object_metrics(pred, radiance, depth)
+    m = object_metrics(pred, radiance, depth > 0)
     assert m["object_psnr_cc"] <= m["object_psnr_constant"] + 0.5
     assert m["object_ssim_cc"] < 0.5
 
@@ -40,13 +40,13 @@ def test_the_environment_does_not_count(scene):
     radiance, depth = scene
     pred = radiance.copy()
     pred[depth == 0] = 0.0  # a black environment; the object as it is
-    m = object_metrics(pred, radiance, depth)
+    m = object_metrics(pred, radiance, depth > 0)
     assert m["object_psnr_cc"] > 60
 
 
 def test_the_color_correction_forgives_a_gain_and_offset(scene):
     radiance, depth = scene
-    m = object_metrics(0.5 * radiance + 0.1, radiance, depth)
+    m = object_metrics(0.5 * radiance + 0.1, radiance, depth > 0)
     assert m["object_psnr_cc"] > 50
 
 
@@ -59,7 +59,7 @@ def test_the_blurred_truth_is_below_the_truth_and_above_a_constant(scene):
 
 def test_without_an_object_no_object_figures(scene):
     radiance, depth = scene
-    assert object_metrics(radiance, radiance, np.zeros_like(depth)) == {}
+    assert object_metrics(radiance, radiance, np.zeros_like(depth) > 0) == {}
 
 
 def test_depth_error_relative_to_the_distance(scene):

@@ -29,39 +29,45 @@ def test_flow_interpolation_follows_the_motion():
     assert np.abs(mid[inner] - truth[inner]).mean() < 0.02
 
 
-def write_dataset(folder, tiny_scene, views=9):
-    """Renders of a small scene along an orbit, written as a NeRF-Synthetic dataset."""
+def write_dataset(folder, tiny_scene, views=9, degrees=24.0, height=0.6, name="transforms"):
+    """Renders of a small scene along an orbit, written as a NeRF-Synthetic dataset: RGBA
+    images (alpha: the sphere), depth renders in the release's encoding (1 - distance / 8)."""
     import cv2
 
     scene = load_scene(
         tiny_scene(
-            trajectory='kind = "orbit"\nradius = 2.2\nheight = 0.6\n'
-            "degrees = 24.0\nduration_s = 1.0"
+            trajectory=f'kind = "orbit"\nradius = 2.2\nheight = {height}\n'
+            f"degrees = {degrees}\nduration_s = 1.0"
         )
     )
     r, traj = Renderer(scene), Trajectory(scene.trajectory)
     frames = []
-    folder.mkdir()
+    folder.mkdir(exist_ok=True)
+    truth = []
     for k in range(views):
         T = traj.pose(k / (views - 1))
         full = r.render_full(T)
+        truth.append(full)
         img = np.clip(full["radiance"], 0, 1)
         srgb = np.where(img <= 0.0031308, img * 12.92, 1.055 * img ** (1 / 2.4) - 0.055)
-        cv2.imwrite(str(folder / f"r_{k}.png"), (srgb[..., ::-1] * 255 + 0.5).astype(np.uint8))
-        depth = np.where(np.isfinite(full["depth"]), full["depth"] / 4.0, 1.0)
-        cv2.imwrite(
-            str(folder / f"r_{k}_depth_0000.png"), (np.clip(depth, 0, 1) * 255).astype(np.uint8)
-        )
+        alpha = (full["depth"] > 0)[..., None]
+        rgba = np.concatenate([srgb[..., ::-1], alpha], -1)
+        cv2.imwrite(str(folder / f"{name}_{k}.png"), (rgba * 255 + 0.5).astype(np.uint8))
+        yy, xx = np.mgrid[0:36, 0:48]
+        ray = np.sqrt(((xx - 23.5) / 45.0) ** 2 + ((yy - 17.5) / 45.0) ** 2 + 1)
+        v = np.where(full["depth"] > 0, 1 - full["depth"] * ray / 8, 0)
+        cv2.imwrite(str(folder / f"{name}_{k}_depth_0186.png"), np.round(v * 255).astype(np.uint8))
         frames.append(
-            {"file_path": f"./r_{k}", "transform_matrix": (T @ BLENDER_TO_OPENCV).tolist()}
+            {"file_path": f"./{name}_{k}", "transform_matrix": (T @ BLENDER_TO_OPENCV).tolist()}
         )
     angle = 2 * np.arctan(48 / 2 / 45.0)
-    (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": angle, "frames": frames}))
-    return folder / "transforms.json"
+    path = folder / f"{name}.json"
+    path.write_text(json.dumps({"camera_angle_x": angle, "frames": frames}))
+    return path, truth
 
 
 def test_events_from_images(tiny_scene, tmp_path):
-    transforms = write_dataset(tmp_path / "data", tiny_scene)
+    transforms, truth = write_dataset(tmp_path / "data", tiny_scene)
     out = tmp_path / "s.h5"
     n = simulate_from_images(transforms, out, fps=10)
     assert n > 200
@@ -69,10 +75,13 @@ def test_events_from_images(tiny_scene, tmp_path):
         g = s.group("gt")
         assert len(g["t"]) == 8  # every 8th image is held out
         assert g["test_radiance"].shape == (1, 36, 48, 3)
-        # the dataset's depth images come along as stored; it has no normal images
-        assert g["depth_image"].shape == (8, 36, 48)
-        assert g["test_depth_image"].shape == (1, 36, 48)
-        assert "normal_image" not in g
+        # the object's mask from the alpha, depth decoded from the depth renders
+        held = truth[7]
+        np.testing.assert_array_equal(g["test_mask"][0], held["depth"] > 0)
+        depth = g["test_depth"][0]
+        assert ((depth > 0) == (held["depth"] > 0)).all()
+        err = np.abs(depth - held["depth"])[depth > 0]
+        assert err.max() < 0.6 * 8 / 255  # half an 8-bit step, and the PNG's rounding
         np.testing.assert_allclose(g["K"][0, 0], 45.0, rtol=1e-6)
         # camera poses back in OpenCV axes: looking at the object at the origin
         T = g["T_world_cam"][0]
@@ -89,3 +98,41 @@ def test_events_from_images(tiny_scene, tmp_path):
                 - np.bincount(px[e.p == 0], minlength=48 * 36)
             )
             assert np.abs(change - counted).max() < 0.4
+
+
+def angle_deg(a, b, where):
+    cos = (a[where] * b[where]).sum(-1) / np.linalg.norm(b[where], axis=-1)
+    return np.degrees(np.arccos(np.clip(cos, -1, 1)))
+
+
+def test_normals_from_the_depth_renders(tiny_scene, tmp_path):
+    transforms, truth = write_dataset(tmp_path / "data", tiny_scene)
+    simulate_from_images(transforms, tmp_path / "s.h5", fps=10)
+    with Session.open(tmp_path / "s.h5") as s:
+        g = s.group("gt")
+        normal = g["normal"][0]
+    known = np.linalg.norm(normal, axis=-1) > 0.5
+    assert known.sum() > 0.3 * (truth[0]["depth"] > 0).sum()  # all but the rim
+    err = angle_deg(normal, truth[0]["normal"], known)
+    assert np.median(err) < 8  # 8-bit depth over a 48-pixel sphere
+
+
+def test_held_out_views_from_another_file(tiny_scene, tmp_path):
+    path, _ = write_dataset(tmp_path / "data", tiny_scene)
+    other, truth = write_dataset(
+        tmp_path / "data", tiny_scene, views=3, degrees=20.0, height=0.9, name="other"
+    )
+    out = tmp_path / "s.h5"
+    simulate_from_images(path, out, held_out=other, fps=10, background=0.0)
+    with Session.open(out) as s:
+        g = s.group("gt")
+        assert len(g["t"]) == 9  # every view of the path makes events
+        assert g["test_radiance"].shape == (3, 36, 48, 3)
+        assert (g["test_radiance"][0][~g["test_mask"][0]] == 0).all()  # over black
+        # the held-out views have no depth renders of their own in use: their depth and
+        # normals come from the path's, where the path saw the surface
+        depth, normal = g["test_depth"][1], g["test_normal"][1]
+    known = depth > 0
+    assert known.sum() > 0.5 * (truth[1]["depth"] > 0).sum()
+    assert np.abs(depth - truth[1]["depth"])[known].mean() < 0.02
+    assert np.median(angle_deg(normal, truth[1]["normal"], known)) < 10
