@@ -150,7 +150,7 @@ def decode_depth(path: Path, scale: float, K: np.ndarray) -> np.ndarray:
     return (distance / np.linalg.norm(r, axis=-1)).astype(np.float32)
 
 
-def normals_from_depth(z: np.ndarray, K: np.ndarray, step: int = 2) -> np.ndarray:
+def normals_from_depth(z: np.ndarray, K: np.ndarray, step: int = 3) -> np.ndarray:
     """Camera-frame unit normals [H, W, 3] of a depth map, from central differences over
     ``step`` pixels of its back-projected points, facing the camera; 0 within ``step`` pixels
     of the silhouette and where the surface is not smooth (a depth step between parts)."""
@@ -201,9 +201,10 @@ def splat_truth(
 ) -> dict[str, np.ndarray]:
     """Depth and normal truth of a view without depth render, from the views that have one
     (pose, truth): their surface points and normals drawn into it, the nearest per pixel. Kept
-    only inside ``mask`` and where the nearest point is no farther than the 5 x 5
-    neighbourhood's nearest plus 2 %: a point seen through a gap between drawn points lies
-    behind the surface. Pixels left without one stay 0 (not scored)."""
+    only inside ``mask`` and where the nearest point is no farther than the 3 x 3
+    neighbourhood's nearest plus 3 %: a point seen through a gap between drawn points lies
+    behind the surface. Pixels left without one stay 0 (not scored), and so do the normals
+    the sources did not determine."""
     import cv2
 
     h, w = mask.shape
@@ -211,27 +212,30 @@ def splat_truth(
     nbuf = np.zeros((h * w, 3))
     world_to_cam = np.linalg.inv(T_world_cam)
     for T, truth in sources:
-        ok = np.linalg.norm(truth["normal"], axis=-1) > 0.5
+        ok = truth["depth"] > 0
         p = rays(K, h, w)[ok] * truth["depth"][ok][:, None]
         to_target = world_to_cam @ T
         q = p @ to_target[:3, :3].T + to_target[:3, 3]
         n = truth["normal"][ok] @ to_target[:3, :3].T
         front = q[:, 2] > 1e-6
         q, n = q[front], n[front]
-        u = np.round(q[:, 0] / q[:, 2] * K[0, 0] + K[0, 2]).astype(np.int64)
-        v = np.round(q[:, 1] / q[:, 2] * K[1, 1] + K[1, 2]).astype(np.int64)
+        # Each point covers the 2 x 2 pixels around it: no gaps between neighbours.
+        x = np.floor(q[:, 0] / q[:, 2] * K[0, 0] + K[0, 2]).astype(np.int64)
+        y = np.floor(q[:, 1] / q[:, 2] * K[1, 1] + K[1, 2]).astype(np.int64)
+        u = np.concatenate([x, x + 1, x, x + 1])
+        v = np.concatenate([y, y, y + 1, y + 1])
+        z, n = np.tile(q[:, 2], 4), np.tile(n, (4, 1))
         inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        pix, z, n = v[inside] * w + u[inside], q[inside, 2], n[inside]
+        pix, z, n = v[inside] * w + u[inside], z[inside], n[inside]
         order = np.argsort(-z)  # nearest last: it wins the assignment
         pix, z, n = pix[order], z[order], n[order]
         nearer = z < zbuf[pix]
         zbuf[pix[nearer]] = z[nearer]
         nbuf[pix[nearer]] = n[nearer]
     zbuf = zbuf.reshape(h, w)
-    local_min = cv2.erode(
-        np.where(np.isfinite(zbuf), zbuf, 1e9).astype(np.float32), np.ones((5, 5))
-    )
-    keep = mask & np.isfinite(zbuf) & (zbuf <= 1.02 * local_min)
+    finite = np.where(np.isfinite(zbuf), zbuf, 1e9).astype(np.float32)
+    local_min = cv2.erode(finite, np.ones((3, 3), np.uint8))
+    keep = mask & np.isfinite(zbuf) & (zbuf <= 1.03 * local_min)
     return {
         "depth": np.where(keep, zbuf, 0).astype(np.float32),
         "normal": np.where(keep[..., None], nbuf.reshape(h, w, 3), 0).astype(np.float32),

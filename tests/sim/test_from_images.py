@@ -29,7 +29,9 @@ def test_flow_interpolation_follows_the_motion():
     assert np.abs(mid[inner] - truth[inner]).mean() < 0.02
 
 
-def write_dataset(folder, tiny_scene, views=9, degrees=24.0, height=0.6, name="transforms"):
+def write_dataset(
+    folder, tiny_scene, views=9, degrees=24.0, height=0.6, name="transforms", depth=True
+):
     """Renders of a small scene along an orbit, written as a NeRF-Synthetic dataset: RGBA
     images (alpha: the sphere), depth renders in the release's encoding (1 - distance / 8)."""
     import cv2
@@ -56,7 +58,10 @@ def write_dataset(folder, tiny_scene, views=9, degrees=24.0, height=0.6, name="t
         yy, xx = np.mgrid[0:36, 0:48]
         ray = np.sqrt(((xx - 23.5) / 45.0) ** 2 + ((yy - 17.5) / 45.0) ** 2 + 1)
         v = np.where(full["depth"] > 0, 1 - full["depth"] * ray / 8, 0)
-        cv2.imwrite(str(folder / f"{name}_{k}_depth_0186.png"), np.round(v * 255).astype(np.uint8))
+        if depth:
+            cv2.imwrite(
+                str(folder / f"{name}_{k}_depth_0186.png"), np.round(v * 255).astype(np.uint8)
+            )
         frames.append(
             {"file_path": f"./{name}_{k}", "transform_matrix": (T @ BLENDER_TO_OPENCV).tolist()}
         )
@@ -120,7 +125,7 @@ def test_normals_from_the_depth_renders(tiny_scene, tmp_path):
 def test_held_out_views_from_another_file(tiny_scene, tmp_path):
     path, _ = write_dataset(tmp_path / "data", tiny_scene)
     other, truth = write_dataset(
-        tmp_path / "data", tiny_scene, views=3, degrees=20.0, height=0.9, name="other"
+        tmp_path / "data", tiny_scene, views=3, degrees=20.0, height=0.9, name="other", depth=False
     )
     out = tmp_path / "s.h5"
     simulate_from_images(path, out, held_out=other, fps=10, background=0.0)
@@ -129,10 +134,13 @@ def test_held_out_views_from_another_file(tiny_scene, tmp_path):
         assert len(g["t"]) == 9  # every view of the path makes events
         assert g["test_radiance"].shape == (3, 36, 48, 3)
         assert (g["test_radiance"][0][~g["test_mask"][0]] == 0).all()  # over black
-        # the held-out views have no depth renders of their own in use: their depth and
-        # normals come from the path's, where the path saw the surface
+        # the held-out views have no depth renders: their depth and normals come from the
+        # path's, where the path saw the surface
         depth, normal = g["test_depth"][1], g["test_normal"][1]
     known = depth > 0
     assert known.sum() > 0.5 * (truth[1]["depth"] > 0).sum()
-    assert np.abs(depth - truth[1]["depth"])[known].mean() < 0.02
+    rel = (np.abs(depth - truth[1]["depth"]) / truth[1]["depth"].clip(1e-6))[known]
+    assert np.median(rel) < 0.025  # about a pixel's slope: 48 pixels span 1 m here
+    known = np.linalg.norm(normal, axis=-1) > 0.5
+    assert known.sum() > 0.2 * (truth[1]["depth"] > 0).sum()  # not within 3 px of an edge
     assert np.median(angle_deg(normal, truth[1]["normal"], known)) < 10
