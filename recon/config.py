@@ -58,6 +58,9 @@ class RadianceConfig:
     # the environment map learnt first: for this fraction of the run the Gaussians are hidden
     # and only the background is fitted to the events
     background_first: float = 0.0
+    # the background's log radiance alike between neighbouring texels (total variation of the
+    # cube map): where no outline crosses it (a plain backdrop), the events leave it free
+    background_tv_weight: float = 0.0
     # neighbouring normals alike where the depth is continuous (losses.normal_smoothness_loss;
     # smooth_step: the relative depth jump that counts as an outline)
     smooth_weight: float = 0.0

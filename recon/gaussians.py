@@ -123,6 +123,14 @@ class Background(torch.nn.Module):
         """Radiance [..., 3] in world directions [..., 3]."""
         return F.softplus(cube_lookup(self.faces, dirs))
 
+    def log_variation(self) -> torch.Tensor:
+        """Mean absolute difference of the log radiance between neighbouring texels of each
+        face (the seams between faces left out)."""
+        log = torch.log(F.softplus(self.faces) + 1e-3)
+        dx = (log[..., 1:] - log[..., :-1]).abs().mean()
+        dy = (log[..., 1:, :] - log[..., :-1, :]).abs().mean()
+        return dx + dy
+
     def radiance_faces(self) -> torch.Tensor:
         """The cube map's radiance [6, 3, S, S]."""
         return F.softplus(self.faces)

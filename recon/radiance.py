@@ -360,6 +360,8 @@ def _losses(
             for s in seen
         )
         total = total + config.quiet_tv_weight * tv / len(seen)
+    if config.background_tv_weight > 0:
+        total = total + config.background_tv_weight * field.background.log_variation()
     if hidden:  # the background alone: the terms of the Gaussians wait for them
         return renders, total, terms
     if config.normal_weight > 0 and step > config.normal_from * config.iterations:

@@ -134,3 +134,14 @@ def test_hidden_gaussians_leave_the_background_alone():
     T = torch.eye(4).numpy()
     assert float(field.render(T, g).alpha.detach().max()) > 0.1
     assert float(field.render(T, g, hidden=True).alpha.detach().max()) == 0.0
+
+
+def test_a_plain_background_has_no_variation_and_a_patch_some():
+    bg = Background(8)
+    assert bg.log_variation().item() == 0.0
+    with torch.no_grad():
+        bg.faces[2, :, 2:4, 2:4] += 2.0
+    variation = bg.log_variation()
+    assert variation.item() > 0
+    variation.backward()
+    assert bg.faces.grad[2].abs().sum() > 0 and bg.faces.grad[0].abs().sum() == 0
