@@ -272,6 +272,8 @@ def test_the_background_alone_first_then_the_gaussians_with_fasts_terms(color_se
         spread_weight=10.0,
         smooth_weight=0.3,
         curvature_weight=1.0,
+        alpha_weight=0.03,
+        background_tv_weight=1.0,
     )
     with Session.open(color_session) as session:
         data = load_training_data(session, config, "cpu")
