@@ -88,7 +88,7 @@ def read_transforms(path: Path, scale: float = 1.0) -> PosedImages:
     return PosedImages(images, np.array(poses), np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]))
 
 
-def _image(path: Path, scale: float, interpolation: int | None = None) -> np.ndarray:
+def _image(path: Path, scale: float) -> np.ndarray:
     """An image file as stored (BGR or BGRA or gray), scaled to [0, 1]."""
     import cv2
 
@@ -96,8 +96,7 @@ def _image(path: Path, scale: float, interpolation: int | None = None) -> np.nda
     if img is None:
         raise InputError(f"{path}: cannot read the image")
     if scale != 1.0:
-        how = cv2.INTER_AREA if interpolation is None else interpolation
-        img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=how)
+        img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
     return img.astype(np.float64) / (65535.0 if img.dtype == np.uint16 else 255.0)
 
 
@@ -299,7 +298,7 @@ def _held_out(
     if held_out is not None:
         other = read_transforms(held_out, scale)
         if not np.allclose(other.K, data.K, rtol=1e-6):
-            raise InputError(f"{held_out}: another camera than the path's ({held_out} vs path)")
+            raise InputError(f"{held_out}: its camera's intrinsics differ from the path's")
         pick = np.unique(np.linspace(0, len(other.images) - 1, test_views).round().astype(int))
         test = PosedImages([other.images[i] for i in pick], other.poses[pick], other.K)
         return np.arange(n), test if test_views > 0 else None
