@@ -1,6 +1,8 @@
 """Events from posed images (NeRF-Synthetic layout), with flow-interpolated frames."""
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 
@@ -30,10 +32,18 @@ def test_flow_interpolation_follows_the_motion():
 
 
 def write_dataset(
-    folder, tiny_scene, views=9, degrees=24.0, height=0.6, name="transforms", depth=True
+    folder,
+    tiny_scene,
+    views=9,
+    degrees=24.0,
+    height=0.6,
+    name="transforms",
+    depth=True,
+    images=None,
 ):
     """Renders of a small scene along an orbit, written as a NeRF-Synthetic dataset: RGBA
-    images (alpha: the sphere), depth renders in the release's encoding (1 - distance / 8)."""
+    images (alpha: the sphere), depth renders in the release's encoding (1 - distance / 8).
+    ``images``: the images' path under ``folder`` without the view's number (``test/r_``)."""
     import cv2
 
     scene = load_scene(
@@ -44,7 +54,8 @@ def write_dataset(
     )
     r, traj = Renderer(scene), Trajectory(scene.trajectory)
     frames = []
-    folder.mkdir(exist_ok=True)
+    images = images or f"{name}_"
+    (folder / images).parent.mkdir(parents=True, exist_ok=True)
     truth = []
     for k in range(views):
         T = traj.pose(k / (views - 1))
@@ -54,16 +65,16 @@ def write_dataset(
         srgb = np.where(img <= 0.0031308, img * 12.92, 1.055 * img ** (1 / 2.4) - 0.055)
         alpha = (full["depth"] > 0)[..., None]
         rgba = np.concatenate([srgb[..., ::-1], alpha], -1)
-        cv2.imwrite(str(folder / f"{name}_{k}.png"), (rgba * 255 + 0.5).astype(np.uint8))
+        cv2.imwrite(str(folder / f"{images}{k}.png"), (rgba * 255 + 0.5).astype(np.uint8))
         yy, xx = np.mgrid[0:36, 0:48]
         ray = np.sqrt(((xx - 23.5) / 45.0) ** 2 + ((yy - 17.5) / 45.0) ** 2 + 1)
         v = np.where(full["depth"] > 0, 1 - full["depth"] * ray / 8, 0)
         if depth:
             cv2.imwrite(
-                str(folder / f"{name}_{k}_depth_0186.png"), np.round(v * 255).astype(np.uint8)
+                str(folder / f"{images}{k}_depth_0186.png"), np.round(v * 255).astype(np.uint8)
             )
         frames.append(
-            {"file_path": f"./{name}_{k}", "transform_matrix": (T @ BLENDER_TO_OPENCV).tolist()}
+            {"file_path": f"./{images}{k}", "transform_matrix": (T @ BLENDER_TO_OPENCV).tolist()}
         )
     angle = 2 * np.arctan(48 / 2 / 45.0)
     path = folder / f"{name}.json"
@@ -144,3 +155,33 @@ def test_held_out_views_from_another_file(tiny_scene, tmp_path):
     known = np.linalg.norm(normal, axis=-1) > 0.5
     assert known.sum() > 0.2 * (truth[1]["depth"] > 0).sum()  # not within 3 px of an edge
     assert np.median(angle_deg(normal, truth[1]["normal"], known)) < 10
+
+
+def test_a_scene_laid_out_as_the_release_through_the_commands(tiny_scene, tmp_path):
+    """What a user runs on any NeRF-Synthetic scene: the orbit of transforms_test.json as the
+    path, views of transforms_train.json held out, then stage I scored on the object."""
+    data = tmp_path / "nerf-synthetic-sphere"
+    write_dataset(data, tiny_scene, name="transforms_test", images="test/r_")
+    write_dataset(
+        data,
+        tiny_scene,
+        views=2,
+        height=0.9,
+        name="transforms_train",
+        depth=False,
+        images="train/r_",
+    )
+    run = [sys.executable, "-m", "evcap"]
+    session, out = tmp_path / "s.h5", tmp_path / "out"
+    simulate = [*run, "simulate", "--from-images", str(data / "transforms_test.json")]
+    simulate += ["--held-out", str(data / "transforms_train.json"), "-o", str(session)]
+    r = subprocess.run(simulate, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    reconstruct = [*run, "reconstruct", str(session), "-o", str(out), "--preset", "tiny"]
+    reconstruct += ["--stage", "radiance", "--iterations", "20"]
+    r = subprocess.run(reconstruct, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["views"] == "held-out test views"
+    for key in ("object_psnr_cc", "object_psnr_constant", "normal_mae_deg", "depth_rel_err"):
+        assert np.isfinite(metrics[key]), key
