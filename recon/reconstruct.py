@@ -64,7 +64,7 @@ def pick_device(name: str) -> str:
 
 def read_environment(path: str | Path) -> np.ndarray:
     """A latitude-longitude environment image (HDR as it is, 8/16-bit from sRGB), linear."""
-    from evcap.sim.lighting import read_image_linear
+    from evcap.images import read_image_linear
 
     path = Path(path)
     if not path.exists():

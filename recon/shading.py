@@ -18,16 +18,18 @@ import math
 import torch
 import torch.nn.functional as F
 
-from evcap.sim.lighting import F0, fibonacci_sphere
-from evcap.sim.lighting import dfg_table as sim_dfg_table
-
+F0 = 0.04  # normal-incidence Fresnel reflectance of a dielectric: the model has no metals
 MIN_ROUGHNESS = 0.04
 DIFFUSE_DIRECTIONS = 256
 
 
 def fibonacci_directions(n: int) -> torch.Tensor:
-    """[n, 3] nearly uniform unit directions (the simulator's set)."""
-    return torch.from_numpy(fibonacci_sphere(n)).float()
+    """[n, 3] nearly uniform unit directions: equal bands of height, golden-angle turns."""
+    k = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1 - 2 * k / n
+    turn = math.pi * (3 - math.sqrt(5)) * k
+    ring = (1 - z * z).sqrt()
+    return torch.stack([ring * turn.cos(), ring * turn.sin(), z], 1).float()
 
 
 def cube_lookup(faces: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
@@ -97,10 +99,34 @@ def prefiltered(levels: list[torch.Tensor], dirs: torch.Tensor, roughness: torch
 
 
 @functools.cache
-def dfg_table() -> torch.Tensor:
-    """The split-sum table [n.v, roughness] -> (A, B): specular = prefiltered * (F0 A + B);
-    the simulator's, integrated by GGX importance sampling on a fixed Hammersley set."""
-    return torch.from_numpy(sim_dfg_table(32, 512)).float()
+def dfg_table(size: int = 32, samples: int = 4096) -> torch.Tensor:
+    """The split-sum table [n.v, roughness] -> (A, B): specular = prefiltered * (F0 A + B),
+    the GGX BRDF with Schlick's Fresnel integrated over the hemisphere for a white light:
+    half vectors drawn from the GGX distribution on a stratified grid (``samples`` per cell)."""
+    side = int(math.sqrt(samples))
+    u = (torch.arange(side, dtype=torch.float64) + 0.5) / side
+    u1, u2 = (g.reshape(-1) for g in torch.meshgrid(u, u, indexing="ij"))
+    c = (torch.arange(size, dtype=torch.float64) + 0.5) / size
+    ndv, rough = c[:, None, None], c[None, :, None]
+    alpha = rough.clamp(min=0.02) ** 2
+    a2 = alpha * alpha
+    cos_h = ((1 - u2) / (1 + (a2 - 1) * u2)).sqrt()  # [1, R, S]
+    sin_h = (1 - cos_h**2).sqrt()
+    phi = 2 * math.pi * u1
+    sin_v = (1 - ndv * ndv).sqrt()
+    # the view in the tangent plane's x-z: v = (sin_v, 0, ndv); light = reflect(v, h)
+    vdh = sin_v * sin_h * phi.cos() + ndv * cos_h  # [V, R, S]
+    ndl = 2 * vdh * cos_h - ndv
+    k = a2  # Smith's separable G with k = alpha^2, as the shading's specular lobe
+    g1 = lambda c: 2 * c / (c + (k + (1 - k) * c * c).sqrt())  # noqa: E731
+    valid = (ndl > 0) & (vdh > 0)
+    weight = torch.where(
+        valid, g1(ndv) * g1(ndl.clamp(min=0)) * vdh / (cos_h * ndv).clamp(min=1e-12), 0
+    )
+    fresnel = (1 - vdh.clamp(0, 1)) ** 5
+    a = ((1 - fresnel) * weight).mean(-1)
+    b = (fresnel * weight).mean(-1)
+    return torch.stack([a, b], -1).float()
 
 
 def split_sum(ndv: torch.Tensor, roughness: torch.Tensor) -> torch.Tensor:

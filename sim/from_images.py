@@ -33,9 +33,9 @@ import numpy as np
 
 from evcap.errors import InputError, InputNotFoundError
 from evcap.events import Events
+from evcap.images import srgb_to_linear
 from evcap.session import SensorInfo, SessionWriter, write_group
 from evcap.sim.events import PixelArray
-from evcap.sim.lighting import srgb_to_linear
 from evcap.sim.sensor import ChannelMap
 from evcap.sim.simulate import EPOCH_US
 

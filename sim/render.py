@@ -2,13 +2,15 @@
 the environment, the sun and point lights.
 
 What a pixel sees: the first surface along its ray (through the distorted camera model), or
-the environment. Diffuse light from the environment is baked per vertex (so it costs nothing
-per frame) through a fixed set of directions; with ``lighting.shadows`` those directions are
-tested for occlusion (visibility), and with ``lighting.indirect`` the occluded ones bring the
-diffuse light of the surface they hit (one bounce: color bleeding). Environment specular uses
-GGX-prefiltered maps (split sum), scaled by the baked visibility when shadows are on; the sun
-and point lights are exact per pixel, with a shadow ray each when shadows are on. Surfaces are
-two-sided (a back face is shaded with its normal flipped).
+the environment. The environment's light is integrated by Monte Carlo on fixed stratified sets
+(evcap.sim.integrals), not by the reconstruction's approximations: diffuse light per vertex
+through cosine-weighted rays (so it costs nothing per frame); with ``lighting.shadows`` the
+rays test occlusion (visibility), and with ``lighting.indirect`` the occluded ones bring the
+diffuse light of the surface they hit (one bounce: color bleeding). Specular light is
+integrated per pixel by GGX importance sampling, each sample's visibility read from the rays
+of the triangle's vertices. The sun and point lights are exact per pixel, with a shadow ray
+each when shadows are on. Surfaces are two-sided (a back face is shaded with its normal
+flipped).
 """
 
 from __future__ import annotations
@@ -17,20 +19,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from evcap.images import read_image_linear
+from evcap.sim import integrals
 from evcap.sim.camera import Camera
-from evcap.sim.lighting import (
-    F0,
-    Environment,
-    dfg_table,
-    fibonacci_sphere,
-    ggx_specular,
-    read_image_linear,
-)
+from evcap.sim.lighting import Environment, ggx_specular
 from evcap.sim.meshes import build_mesh
 from evcap.sim.raytrace import Bvh
 from evcap.sim.scene import Material, Scene
 
-ROUGHNESS_LEVELS = np.array([0.05, 0.15, 0.3, 0.45, 0.6, 0.8, 1.0])
 SHADOW_BIAS = 1e-4  # scene units: shadow rays start this far off the surface
 
 
@@ -170,8 +166,7 @@ class Renderer:
             )
             for p in scene.lighting.points
         ]
-        self.prefiltered = self.env.prefilter(ROUGHNESS_LEVELS)
-        self.dfg = dfg_table()
+        self.sky_table = self.env.table()
         self._bake(progress)
 
     # -- per-vertex diffuse light ----------------------------------------------------------------
@@ -179,52 +174,54 @@ class Renderer:
     def _bake(self, progress) -> None:
         """Environment irradiance (with visibility and one bounce when asked) per vertex."""
         m, light = self.mesh, self.scene.lighting
-        k = light.samples
-        dirs = fibonacci_sphere(k)
-        n_vert = len(m.vertices)
-        cos = np.clip(m.normals @ dirs.T, 0, None)  # [V, K]
-        visible = None
-        if light.shadows or light.indirect:
-            visible = np.ones((n_vert, k), np.float32)
-            hits = []
-            for a in range(0, n_vert, 2048):
-                b = min(a + 2048, n_vert)
-                o = np.repeat(m.vertices[a:b] + m.normals[a:b] * SHADOW_BIAS, k, axis=0)
-                d = np.tile(dirs, (b - a, 1))
-                t, face, u, v = self.bvh.closest(o, d)
-                blocked = (face >= 0).reshape(b - a, k) & (cos[a:b] > 0)
-                visible[a:b][blocked] = 0.0
-                hits.append((face.reshape(b - a, k), u.reshape(b - a, k), v.reshape(b - a, k)))
-                if progress:
-                    progress(b, n_vert)
-        env = self.env.irradiance(m.normals, k, visible if light.shadows else None)
+        self.cells = integrals.cell_grid(light.samples)
+        local = integrals.cosine_cells(*self.cells)  # [C, 3]
+        n_vert, n_cells = len(m.vertices), len(local)
+        self.vertex_frames = integrals.frames(m.normals)
+        cast = light.shadows or light.indirect
+        # which cells' rays reach the sky: the specular integral reads it too
+        self.vertex_open = np.ones((n_vert, n_cells), np.bool_) if cast else None
+        env = np.zeros((n_vert, 3))
+        unshadowed = np.zeros((n_vert, 3))
+        hits = []
+        chunk = max(1, 262_144 // n_cells)
+        for a in range(0, n_vert, chunk):
+            b = min(a + chunk, n_vert)
+            dirs = np.einsum("ci,vij->vcj", local, self.vertex_frames[a:b])  # [v, C, 3]
+            sky = self.env.radiance(dirs.reshape(-1, 3)).reshape(b - a, n_cells, 3)
+            unshadowed[a:b] = sky.mean(1) * np.pi
+            if cast:
+                o = np.repeat(m.vertices[a:b] + m.normals[a:b] * SHADOW_BIAS, n_cells, axis=0)
+                t, face, u, v = self.bvh.closest(o, dirs.reshape(-1, 3))
+                blocked = (face >= 0).reshape(b - a, n_cells)
+                self.vertex_open[a:b] = ~blocked
+                hits.append((face.reshape(b - a, n_cells), u.reshape(b - a, n_cells), v))
+                if light.shadows:
+                    sky = sky * ~blocked[..., None]
+            env[a:b] = sky.mean(1) * np.pi
+            if progress:
+                progress(b, n_vert)
+        if not light.shadows:
+            env = unshadowed
         # the shadow factor of the ground truth (RenderResult.visibility) needs the unshadowed too
-        self.vertex_env = env
-        self.vertex_env_unshadowed = (
-            self.env.irradiance(m.normals, k, None) if light.shadows else env
-        )
+        self.vertex_env, self.vertex_env_unshadowed = env, unshadowed
         self.vertex_bounce = np.zeros((n_vert, 3))
-        self.vertex_visibility = (
-            (cos * visible).sum(1) / np.maximum(cos.sum(1), 1e-12)
-            if light.shadows
-            else np.ones(n_vert)
-        )
         self.vertex_irradiance = env
         if light.indirect:
             direct = env + self._point_irradiance(m.vertices, m.normals, shadows=light.shadows)
             bounce = np.zeros((n_vert, 3))
-            for chunk, (face, u, v) in zip(range(0, n_vert, 2048), hits, strict=True):
+            for a, (face, u, v) in zip(range(0, n_vert, chunk), hits, strict=True):
                 sel = face >= 0
-                f, uu, vv = face[sel], u[sel], v[sel]
+                f = face[sel]
+                uu, vv = u.reshape(face.shape)[sel], v.reshape(face.shape)[sel]
                 w = np.stack([1 - uu - vv, uu, vv], 1)
                 tri = m.faces[f]
                 e_hit = (direct[tri] * w[..., None]).sum(1)
                 uv = (m.uvs[tri] * w[..., None]).sum(1)
                 albedo = self.surfaces.base_color(m.material[f], m.object_id[f], uv)
-                radiance = albedo / np.pi * e_hit
-                rows = np.nonzero(sel)[0] + chunk
-                weights = cos[rows, np.nonzero(sel)[1]] * (4 * np.pi / k)
-                np.add.at(bounce, rows, radiance * weights[:, None])
+                rows = np.nonzero(sel)[0] + a
+                # cosine-weighted: each cell carries pi / C of the irradiance
+                np.add.at(bounce, rows, albedo / np.pi * e_hit * (np.pi / n_cells))
             self.vertex_irradiance = env + bounce
             self.vertex_bounce = bounce
 
@@ -267,33 +264,6 @@ class Renderer:
 
     # -- rendering ---------------------------------------------------------------------------------
 
-    def _prefiltered(self, r: np.ndarray, roughness: np.ndarray) -> np.ndarray:
-        levels, h, w, _ = self.prefiltered.shape
-        d = r @ self.env.rotation
-        u = (np.arctan2(d[:, 1], d[:, 0]) / (2 * np.pi) + 0.5) * w - 0.5
-        v = np.clip((0.5 - np.arcsin(np.clip(d[:, 2], -1, 1)) / np.pi) * h - 0.5, 0, h - 1)
-        level = np.interp(roughness, ROUGHNESS_LEVELS, np.arange(levels))
-        l0 = np.floor(level).astype(int)
-        l1 = np.minimum(l0 + 1, levels - 1)
-        fl = (level - l0)[:, None]
-        x0, y0 = np.floor(u).astype(int), np.floor(v).astype(int)
-        fx, fy = (u - x0)[:, None], (v - y0)[:, None]
-        x0, x1, y1 = x0 % w, (x0 + 1) % w, np.minimum(y0 + 1, h - 1)
-        out = 0
-        for lv, wl in ((l0, 1 - fl), (l1, fl)):
-            p = self.prefiltered
-            out = out + wl * (
-                (p[lv, y0, x0] * (1 - fx) + p[lv, y0, x1] * fx) * (1 - fy)
-                + (p[lv, y1, x0] * (1 - fx) + p[lv, y1, x1] * fx) * fy
-            )
-        return out
-
-    def _dfg(self, ndv: np.ndarray, roughness: np.ndarray) -> np.ndarray:
-        size = self.dfg.shape[0]
-        i = np.clip((ndv * size - 0.5).astype(int), 0, size - 1)
-        j = np.clip((roughness * size - 0.5).astype(int), 0, size - 1)
-        return self.dfg[i, j]
-
     def render(self, T_world_cam: np.ndarray, pixels: np.ndarray | None = None) -> RenderResult:
         """Render the pixels (flat indices; None: all) for the camera at ``T_world_cam``."""
         rays = self.camera.rays() if pixels is None else self.camera.rays()[pixels]
@@ -335,7 +305,6 @@ class Renderer:
             albedo = self.surfaces.base_color(m.material[f], m.object_id[f], uv)
             r = self.surfaces.roughness[m.material[f]]
             irradiance = (self.vertex_irradiance[tri] * w[..., None]).sum(1)
-            visibility = (self.vertex_visibility[tri] * w).sum(1)
             shadows = self.scene.lighting.shadows
             points, points_unshadowed = self._point_irradiance_both(x, n, shadows)
             irradiance = irradiance + points
@@ -350,14 +319,10 @@ class Renderer:
             )
             bounce = (self.vertex_bounce[tri] * w[..., None]).sum(1)
             indirect[hit] = albedo / np.pi * bounce
-            ndv = np.clip((n * view).sum(1), 1e-4, 1)
-            reflected = 2 * ndv[:, None] * n - view
-            ab = self._dfg(ndv, r)
-            color += (
-                self._prefiltered(reflected, r)
-                * (F0 * ab[:, 0] + ab[:, 1])[:, None]
-                * visibility[:, None]
-            )
+            sky_open = None
+            if shadows:
+                sky_open = (tri, w, self.vertex_frames, self.vertex_open, *self.cells)
+            color += integrals.specular_environment(self.sky_table, n, view, r, sky_open=sky_open)
             for direction, irr, distance in self._light_dirs(x):
                 spec = ggx_specular(n, view, direction, r)
                 if shadows:

@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 
-from evcap.sim.lighting import Environment, dfg_table, fibonacci_sphere
 from evcap.sim.render import Renderer
 from evcap.sim.scene import Lighting, load_scene
 from evcap.sim.trajectory import Trajectory
@@ -11,21 +10,6 @@ from evcap.sim.trajectory import Trajectory
 UNIFORM_SKY = (
     'environment = "sky"\nsky = { zenith = [1, 1, 1], horizon = [1, 1, 1], ground = [1, 1, 1] }'
 )
-
-
-def test_environment_irradiance_is_pi_for_a_uniform_sky():
-    env = Environment(
-        Lighting(sky={"zenith": [1, 1, 1], "horizon": [1, 1, 1], "ground": [1, 1, 1]})
-    )
-    normals = fibonacci_sphere(16)
-    np.testing.assert_allclose(env.irradiance(normals, 1024), np.pi, rtol=0.01)
-
-
-def test_dfg_table_sums_to_the_white_furnace():
-    # A + B is the directional albedo of the GGX lobe with F = 1: at most 1, near 1 when smooth
-    ab = dfg_table(16, 512)
-    total = ab.sum(-1)
-    assert (total <= 1.01).all() and total[-1, 0] > 0.95
 
 
 def test_lambert_sphere_under_a_uniform_sky(tiny_scene):
