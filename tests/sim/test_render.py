@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from evcap.sim.render import Renderer
-from evcap.sim.scene import Lighting, load_scene
+from evcap.sim.scene import load_scene
 from evcap.sim.trajectory import Trajectory
 
 UNIFORM_SKY = (
