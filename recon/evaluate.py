@@ -129,3 +129,13 @@ def material_metrics(
             err = np.abs(views["roughness"] - truth["roughness"])[surface]
             out["roughness_mae"] = float(err.mean())
     return out
+
+
+def relit_metrics(relit: np.ndarray, truth: dict[str, np.ndarray]) -> dict[str, float]:
+    """The held-out views rendered under the truth's second light against its renders: over
+    the image, and on the object's pixels (``relit_object_psnr_cc``)."""
+    out = image_metrics(relit, truth["relit_radiance"], "relit")
+    mask = object_mask(truth)
+    if mask is not None and mask.any():
+        out.update(surface_metrics(relit, truth["relit_radiance"], mask, "relit_object"))
+    return out

@@ -23,6 +23,7 @@ from evcap.recon.evaluate import (
     material_metrics,
     metrics,
     object_mask,
+    relit_metrics,
     render_views,
     test_views,
 )
@@ -140,6 +141,10 @@ def reconstruct(
             field, _ = load_checkpoint(out / "checkpoint" / "radiance.pt", device, backend)
         data = load_training_data(session, config, device)
         poses, truth = test_views(session)
+        if environment is None and "relit_radiance" in truth:
+            environment = session.group("gt")["relight_environment"][:].astype(np.float64)
+        elif environment is not None:  # another light than the truth's: shown, not scored
+            truth.pop("relit_radiance", None)
         if not len(poses):
             times = np.linspace(
                 data.windows.frame_times[0], data.windows.frame_times[-1], TRACK_VIEWS
@@ -333,6 +338,8 @@ def _material_outputs(fit, poses, truth, optics, environment, out: Path, device,
     if environment is not None:
         new = light_from_image(environment, light[0].shape[-1], device)
         relit = render_views(field, poses, optics, device, new)
+        if "relit_radiance" in truth:
+            result.update(relit_metrics(relit["radiance"], truth))
         for i, image in enumerate(relit["radiance"]):
             write_image(image, out / "renders" / "relit" / f"{name}_{i:03d}.png")
         write_image(environment_image(new), out / "renders" / "relit" / "environment.png")

@@ -8,6 +8,7 @@ scene asks for them. Errors name the file and the key.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -117,10 +118,23 @@ class ImuSpec:
     accel_noise: float = 0.0  # m/s^2
 
 
+# The held-out views' second light, for relighting truth: a low warm sky over a dark blue
+# ground, unlike the scenes' own daylight
+RELIGHT_SKY = {
+    "zenith": [0.9, 0.55, 0.3],
+    "horizon": [1.0, 0.75, 0.45],
+    "ground": [0.1, 0.14, 0.25],
+}
+
+
 @dataclass(frozen=True)
 class GroundTruthSpec:
     fps: float = 20.0  # ground-truth frames per second
     test_views: int = 8  # held-out views off the trajectory
+    # the environment the held-out views are rendered under a second time (environment, sky,
+    # intensity, rotation_deg as in [lighting]; no sun: the reconstruction is handed it as an
+    # image); shadows and bounce as the scene's, point lights off
+    relight: Lighting = field(default_factory=lambda: Lighting(sky=RELIGHT_SKY))
 
 
 @dataclass(frozen=True)
@@ -253,6 +267,31 @@ def _material(name: str, t: _Table, base: Path) -> Material:
 OBJECT_KINDS = ("sphere", "box", "plane", "mesh", "charuco")
 
 
+def _environment(t: _Table, base: Path, sky: dict | None = None) -> dict:
+    """A [lighting] table's environment keys."""
+    env = t.get("environment", str, "sky")
+    if env != "sky":
+        env = str(_resolve(base, env, f"{t.where}: environment"))
+    return {
+        "environment": env,
+        "sky": t.get("sky", dict, {} if sky is None else sky),
+        "intensity": t.get("intensity", float, 1.0),
+        "rotation_deg": t.get("rotation_deg", float, 0.0),
+    }
+
+
+def _relight(t: _Table, base: Path, lighting: Lighting) -> Lighting:
+    """[gt] relight: the second environment, with the scene's shadows and bounce."""
+    env = _environment(t, base, RELIGHT_SKY)
+    t.done()
+    if env["environment"] == "sky" and env["sky"].get("sun_irradiance", 0):
+        raise InputError(
+            f"{t.where}: no sun here (the reconstruction relights with an image); "
+            "brighten the sky or give an environment image"
+        )
+    return dataclasses.replace(lighting, points=(), **env)
+
+
 def load_scene(path: str | os.PathLike) -> Scene:
     """Read and check a scene file."""
     path = Path(path)
@@ -287,14 +326,8 @@ def load_scene(path: str | os.PathLike) -> Scene:
         raise InputError(f"{path}: the scene has no [[objects]]")
 
     light = top.table("lighting")
-    env = light.get("environment", str, "sky")
-    if env != "sky":
-        env = str(_resolve(base, env, f"{light.where}: environment"))
     lighting = Lighting(
-        environment=env,
-        sky=light.get("sky", dict, {}),
-        intensity=light.get("intensity", float, 1.0),
-        rotation_deg=light.get("rotation_deg", float, 0.0),
+        **_environment(light, base),
         points=tuple(light.get("points", list, [])),
         shadows=light.get("shadows", bool, False),
         indirect=light.get("indirect", bool, False),
@@ -363,9 +396,11 @@ def load_scene(path: str | os.PathLike) -> Scene:
         )
         i.done()
     g = top.table("gt")
+    relight = _relight(_Table(g.get("relight", dict, {}), f"{g.where}.relight"), base, lighting)
     gt = GroundTruthSpec(
         fps=_positive(g.where, "fps", g.get("fps", float, 20.0)),
         test_views=g.get("test_views", int, 8),
+        relight=relight,
     )
     g.done()
     result = Scene(

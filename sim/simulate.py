@@ -10,6 +10,7 @@ camera renders identical frames and produces no events (unless noise effects are
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from collections.abc import Callable, Iterator
@@ -337,6 +338,11 @@ class Simulator:
                 data["test_T_world_cam"] = test
                 for k in views[0]:
                     data[f"test_{k}"] = np.stack([view[k] for view in views])
+                relit = Renderer(dataclasses.replace(self.scene, lighting=g.relight))
+                data["test_relit_radiance"] = np.stack(
+                    [relit.render(T).radiance.reshape(views[0]["radiance"].shape) for T in test]
+                ).astype(np.float32)
+                data["relight_environment"] = relit.env.table(256).astype(np.float32)
         spec = self.scene.camera
         attrs = {
             "source": "evcap simulate",
@@ -347,6 +353,11 @@ class Simulator:
             "depth": "z in the camera frame (OpenCV axes); 0 where no surface",
             "normal": "unit, in the camera frame (OpenCV axes: x right, y down, z forward)",
             "radiance": "linear RGB, before the color filter",
+            "relit_radiance": "the held-out views under relight_environment instead",
+            "relight_environment": (
+                "linear RGB radiance on a latitude-longitude grid of world directions (z up,"
+                " azimuth from +x, top row the zenith): the second light"
+            ),
             "visibility": (
                 "direct irradiance received / direct irradiance if nothing blocked (environment"
                 " without the bounce, sun, point lights): the shadow factor, 1 unshadowed;"

@@ -9,7 +9,8 @@ evaluation needs of the simulated session's /gt and /poses, small:
   [V, 4, 4] and their ``test_radiance`` [V, H, W, 3] (linear RGB), ``test_depth`` [V, H, W]
   (camera z, 0 where no surface), ``test_normal`` [V, H, W, 3] (camera axes),
   ``test_base_color`` [V, H, W, 3] and ``test_roughness`` [V, H, W]; the images in float16,
-  all gzip-compressed with the shuffle filter; the attributes of the session's /gt.
+  all gzip-compressed with the shuffle filter; the attributes of the session's /gt; where the
+  session has them, ``test_relit_radiance`` and ``relight_environment`` (the second light).
 - ``/poses``: the simulated trajectory (``t``, ``T_world_cam``, 500 per second), to align
   estimated poses with.
 
@@ -32,6 +33,7 @@ from evcap.session import write_group
 
 GT_POSES = ("t", "T_world_cam", "K", "test_T_world_cam")  # kept as they are (float64, int64)
 GT_IMAGES = ("test_radiance", "test_depth", "test_normal", "test_base_color", "test_roughness")
+GT_OPTIONAL = ("relight_environment", "test_relit_radiance")  # kept where the session has them
 TRUTH_VERSION = 1  # of the truth file's layout (root attribute ``truth_version``)
 _COMPRESSION = {"compression": "gzip", "compression_opts": 9, "shuffle": True}
 
@@ -49,7 +51,7 @@ def write_truth(session_path: str | Path, truth_path: str | Path) -> None:
                 f"{session_path}: /gt has no {', '.join(missing)} (the scene needs [gt] "
                 "test_views > 0)"
             )
-        data = {k: gt[k][()] for k in GT_POSES + GT_IMAGES}
+        data = {k: gt[k][()] for k in GT_POSES + GT_IMAGES + GT_OPTIONAL if k in gt}
         gt_attrs = dict(gt.attrs)
         trajectory = {k: poses[k][()] for k in ("t", "T_world_cam")}
         pose_attrs = dict(poses.attrs)
@@ -61,9 +63,10 @@ def write_truth(session_path: str | Path, truth_path: str | Path) -> None:
         g = out.create_group("gt")
         for key in GT_POSES:
             g.create_dataset(key, data=data[key])
-        for key in GT_IMAGES:
-            a = data[key].astype(np.float16)
-            g.create_dataset(key, data=a, chunks=(1, *a.shape[1:]), **_COMPRESSION)
+        for key in GT_IMAGES + GT_OPTIONAL:
+            if key in data:
+                a = data[key].astype(np.float16)
+                g.create_dataset(key, data=a, chunks=(1, *a.shape[1:]), **_COMPRESSION)
         for key, value in gt_attrs.items():
             g.attrs[key] = value
         p = out.create_group("poses")
@@ -92,7 +95,7 @@ def read_truth(truth_path: str | Path) -> tuple[dict, dict, dict, dict]:
         if missing:
             raise SessionFormatError(f"{truth_path}: /gt has no {', '.join(missing)}")
         data = {k: gt[k][()] for k in GT_POSES}
-        data.update({k: gt[k][()].astype(np.float32) for k in GT_IMAGES})
+        data.update({k: gt[k][()].astype(np.float32) for k in GT_IMAGES + GT_OPTIONAL if k in gt})
         poses = {k: f["poses"][k][()] for k in ("t", "T_world_cam")}
         return data, dict(gt.attrs), poses, dict(f["poses"].attrs)
 

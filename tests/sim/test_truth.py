@@ -11,7 +11,7 @@ from evcap.recon.evaluate import test_views as held_out_views
 from evcap.session import SensorInfo, Session, SessionWriter
 from evcap.sim.scene import load_scene
 from evcap.sim.simulate import simulate
-from evcap.sim.truth import GT_IMAGES, copy_truth, write_truth
+from evcap.sim.truth import GT_IMAGES, GT_OPTIONAL, copy_truth, write_truth
 
 
 @pytest.fixture(scope="module")
@@ -35,13 +35,33 @@ def recorded(path, width=48, height=36):
 def test_truth_file_is_small_and_holds_what_the_evaluation_needs(simulated):
     session, truth = simulated
     with h5py.File(truth) as f, h5py.File(session) as s:
-        assert set(f["gt"]) == {"t", "T_world_cam", "K", "test_T_world_cam", *GT_IMAGES}
-        for key in GT_IMAGES:
+        assert set(f["gt"]) == {
+            "t",
+            "T_world_cam",
+            "K",
+            "test_T_world_cam",
+            *GT_IMAGES,
+            *GT_OPTIONAL,
+        }
+        for key in GT_IMAGES + GT_OPTIONAL:
             d = f["gt"][key]
             assert d.dtype == np.float16 and d.compression == "gzip" and d.shuffle
         np.testing.assert_array_equal(f["poses/T_world_cam"][:], s["poses/T_world_cam"][:])
         np.testing.assert_array_equal(f["gt/test_T_world_cam"][:], s["gt/test_T_world_cam"][:])
         assert f["gt"].attrs["scene"] == s["gt"].attrs["scene"]
+
+
+def test_held_out_views_under_a_second_light(simulated):
+    session, _ = simulated
+    with Session.open(session) as s:
+        g = s.group("gt")
+        lit, relit = g["test_radiance"][:], g["test_relit_radiance"][:]
+        surface, env = g["test_depth"][:] > 0, g["relight_environment"][:]
+    assert relit.shape == lit.shape and env.shape == (128, 256, 3)
+    # the second light is a warm sky over a dark ground: the zenith red, the surface warmer
+    assert env[0, :, 0].mean() > env[0, :, 2].mean() and env[-1].mean() < env[0].mean()
+    warmth = lambda img: img[surface][:, 0].mean() / img[surface][:, 2].mean()  # noqa: E731
+    assert warmth(relit) > 1.5 * warmth(lit)
 
 
 def test_copy_truth_gives_a_recorded_session_its_held_out_views(simulated, tmp_path):
