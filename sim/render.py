@@ -7,7 +7,7 @@ the environment. The environment's light is integrated by Monte Carlo on fixed s
 through cosine-weighted rays (so it costs nothing per frame); with ``lighting.shadows`` the
 rays test occlusion (visibility), and with ``lighting.indirect`` the occluded ones bring the
 diffuse light of the surface they hit (one bounce: color bleeding). Specular light is
-integrated per pixel by GGX importance sampling, each sample's visibility read from the rays
+integrated per pixel over GGX's visible normals, each sample's visibility read from the rays
 of the triangle's vertices. The sun and point lights are exact per pixel, with a shadow ray
 each when shadows are on. Surfaces are two-sided (a back face is shaded with its normal
 flipped).
@@ -195,7 +195,7 @@ class Renderer:
                 t, face, u, v = self.bvh.closest(o, dirs.reshape(-1, 3))
                 blocked = (face >= 0).reshape(b - a, n_cells)
                 self.vertex_open[a:b] = ~blocked
-                hits.append((face.reshape(b - a, n_cells), u.reshape(b - a, n_cells), v))
+                hits.append(tuple(x.reshape(b - a, n_cells) for x in (face, u, v)))
                 if light.shadows:
                     sky = sky * ~blocked[..., None]
             env[a:b] = sky.mean(1) * np.pi
@@ -212,8 +212,7 @@ class Renderer:
             bounce = np.zeros((n_vert, 3))
             for a, (face, u, v) in zip(range(0, n_vert, chunk), hits, strict=True):
                 sel = face >= 0
-                f = face[sel]
-                uu, vv = u.reshape(face.shape)[sel], v.reshape(face.shape)[sel]
+                f, uu, vv = face[sel], u[sel], v[sel]
                 w = np.stack([1 - uu - vv, uu, vv], 1)
                 tri = m.faces[f]
                 e_hit = (direct[tri] * w[..., None]).sum(1)
