@@ -24,7 +24,7 @@ from evcap.errors import InputError
 from evcap.events import Events
 from evcap.session import SensorInfo, SessionWriter, write_group
 from evcap.sim.events import PixelArray
-from evcap.sim.render import Renderer
+from evcap.sim.render import RENDERER_VERSION, Renderer
 from evcap.sim.scene import Scene
 from evcap.sim.sensor import ChannelMap, aps_frame, imu_samples, measured_sensor
 from evcap.sim.trajectory import Trajectory, look_at
@@ -346,6 +346,7 @@ class Simulator:
         spec = self.scene.camera
         attrs = {
             "source": "evcap simulate",
+            "renderer_version": RENDERER_VERSION,
             "scene": self.scene.name,
             "seed": self.seed,
             "distortion_model": spec.distortion_model,
