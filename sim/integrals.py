@@ -50,13 +50,13 @@ def cosine_cells(rings: int, sectors: int) -> np.ndarray:
     return np.stack([s * np.cos(phi), s * np.sin(phi), np.sqrt(1 - u)], -1).reshape(-1, 3)
 
 
-def cell_of(local: np.ndarray, rings: int, sectors: int) -> np.ndarray:
-    """Index of the cosine cell that holds each local direction [..., 3] (above the surface)."""
-    sin2 = np.clip(1 - local[..., 2] ** 2, 0, 1)
-    ring = np.minimum((sin2 * rings).astype(np.int64), rings - 1)
-    phi = np.arctan2(local[..., 1], local[..., 0]) % (2 * np.pi)
-    sector = np.minimum((phi / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
-    return ring * sectors + sector
+@numba.njit(cache=True)
+def cell_of(x: float, y: float, z: float, rings: int, sectors: int) -> int:
+    """Index of the cosine cell that holds the local direction (x, y, z) (z > 0: above the
+    surface)."""
+    ring = min(int(max(1 - z * z, 0.0) * rings), rings - 1)
+    turn = np.arctan2(y, x) % (2 * np.pi)
+    return ring * sectors + min(int(turn / (2 * np.pi) * sectors), sectors - 1)
 
 
 def specular_environment(
@@ -129,9 +129,6 @@ def _specular(
             ax, ay = 1.0, 0.0
         bx, by, bz = -ez * ay, ez * ax, ex * ay - ey * ax  # (e x a), a = (ax, ay, 0)
         s_mix = 0.5 * (1 + ez)
-        r = 0.0
-        g = 0.0
-        b = 0.0
         for i in range(side):
             rad = np.sqrt((i + 0.5) / side)
             for j in range(side):
@@ -173,12 +170,7 @@ def _specular(
                         qy += vframes[vert, 1, 2] * dz
                         qz = vframes[vert, 2, 0] * dx + vframes[vert, 2, 1] * dy
                         qz += vframes[vert, 2, 2] * dz
-                        if qz <= 0:
-                            continue
-                        ring = min(int(max(1 - qz * qz, 0.0) * rings), rings - 1)
-                        turn = np.arctan2(qy, qx) % (2 * np.pi)
-                        sector = min(int(turn / (2 * np.pi) * sectors), sectors - 1)
-                        if vopen[vert, ring * sectors + sector]:
+                        if qz > 0 and vopen[vert, cell_of(qx, qy, qz, rings, sectors)]:
                             seen += w[p, c]
                     weight *= seen
                     if weight == 0:
@@ -196,13 +188,4 @@ def _specular(
                     light = (table[y0, x0, c] * (1 - fx) + table[y0, x1, c] * fx) * (1 - fy) + (
                         table[y1, x0, c] * (1 - fx) + table[y1, x1, c] * fx
                     ) * fy
-                    if c == 0:
-                        r += weight * light
-                    elif c == 1:
-                        g += weight * light
-                    else:
-                        b += weight * light
-        count = side * side
-        out[p, 0] = r / count
-        out[p, 1] = g / count
-        out[p, 2] = b / count
+                    out[p, c] += weight * light / (side * side)

@@ -340,8 +340,8 @@ class Simulator:
                     data[f"test_{k}"] = np.stack([view[k] for view in views])
                 relit = Renderer(dataclasses.replace(self.scene, lighting=g.relight))
                 data["test_relit_radiance"] = np.stack(
-                    [relit.render(T).radiance.reshape(views[0]["radiance"].shape) for T in test]
-                ).astype(np.float32)
+                    [relit.render_full(T)["radiance"] for T in test]
+                )
                 data["relight_environment"] = relit.env.table(256).astype(np.float32)
         spec = self.scene.camera
         attrs = {

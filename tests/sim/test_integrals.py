@@ -32,7 +32,8 @@ def test_cosine_cells_tile_the_hemisphere_evenly():
     local = integrals.cosine_cells(rings, sectors)
     assert len(local) == rings * sectors >= 250
     np.testing.assert_allclose(np.linalg.norm(local, axis=1), 1, atol=1e-12)
-    np.testing.assert_array_equal(integrals.cell_of(local, rings, sectors), np.arange(len(local)))
+    cells = [integrals.cell_of(*d, rings, sectors) for d in local]
+    np.testing.assert_array_equal(cells, np.arange(len(local)))
     # equal cosine-weighted measure: the mean of cos over the cells is E[cos] = 2/3
     assert local[:, 2].mean() == pytest.approx(2 / 3, abs=2e-3)
 
