@@ -301,8 +301,11 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         "render_psnr_cc",
         "blur_psnr",
         "base_color_psnr_cc",
+        "base_color_psnr_cc_baseline",
         "roughness_mae",
         "pbr_render_psnr_cc",
+        "relit_object_psnr_cc",
+        "relit_object_psnr_cc_baseline",
     )
     figures = "  ".join(f"{k} {result[k]:.3f}" for k in keys if result.get(k) is not None)
     if figures:

@@ -102,10 +102,12 @@ BLEEDING_ABOVE = 0.1  # color bleeding: the bounce brings more than this share o
 
 
 def material_metrics(
-    views: dict[str, np.ndarray], truth: dict[str, np.ndarray]
+    views: dict[str, np.ndarray], truth: dict[str, np.ndarray], radiance: np.ndarray | None = None
 ) -> dict[str, float | None]:
     """Stage II against the truth: base color (on the surface; also inside shadows and color
-    bleeding when the truth marks them), roughness, normals, and the physically based render."""
+    bleeding when the truth marks them), roughness, normals, and the physically based render.
+    ``radiance``: stage I's render of the same views, scored as a base color
+    (``base_color_psnr_cc_baseline``: what no decomposition at all reaches)."""
     out: dict[str, float | None] = {}
     if "radiance" in truth:
         out.update(image_metrics(views["radiance"], truth["radiance"], "pbr_render"))
@@ -125,17 +127,27 @@ def material_metrics(
                     views["base_color"], truth["base_color"], surface, "base_color", regions
                 )
             )
+            if radiance is not None and surface.any():
+                same = surface_metrics(radiance, truth["base_color"], surface, "base_color")
+                out["base_color_psnr_cc_baseline"] = same["base_color_psnr_cc"]
         if "roughness" in truth and surface.any():
             err = np.abs(views["roughness"] - truth["roughness"])[surface]
             out["roughness_mae"] = float(err.mean())
     return out
 
 
-def relit_metrics(relit: np.ndarray, truth: dict[str, np.ndarray]) -> dict[str, float]:
+def relit_metrics(
+    relit: np.ndarray, truth: dict[str, np.ndarray], radiance: np.ndarray | None = None
+) -> dict[str, float]:
     """The held-out views rendered under the truth's second light against its renders: over
-    the image, and on the object's pixels (``relit_object_psnr_cc``)."""
+    the image, and on the object's pixels (``relit_object_psnr_cc``). ``radiance``: the views
+    under the first light, not relit, scored the same way (``relit_object_psnr_cc_baseline``:
+    what the color correction alone makes of a render that was never relit)."""
     out = image_metrics(relit, truth["relit_radiance"], "relit")
     mask = object_mask(truth)
     if mask is not None and mask.any():
         out.update(surface_metrics(relit, truth["relit_radiance"], mask, "relit_object"))
+        if radiance is not None:
+            same = surface_metrics(radiance, truth["relit_radiance"], mask, "relit_object")
+            out["relit_object_psnr_cc_baseline"] = same["relit_object_psnr_cc"]
     return out

@@ -201,7 +201,9 @@ def reconstruct(
         if "normal_mae_deg" in result and "radiance_normal_mae_deg" not in result:
             result["radiance_normal_mae_deg"] = result["normal_mae_deg"]
         result.update(
-            _material_outputs(fit, poses, truth, data.optics, environment, out, device, ablate)
+            _material_outputs(
+                fit, field, poses, truth, data.optics, environment, out, device, ablate
+            )
         )
         result["material_seconds"] = time.perf_counter() - started
         if states["material"] is not None:
@@ -323,13 +325,17 @@ def _stage_radiance(
     return field, result
 
 
-def _material_outputs(fit, poses, truth, optics, environment, out: Path, device, ablate) -> dict:
-    """Stage II's renders, light, relit views, checkpoint; its figures."""
+def _material_outputs(
+    fit, radiance, poses, truth, optics, environment, out: Path, device, ablate
+) -> dict:
+    """Stage II's renders, light, relit views, checkpoint; its figures, with what stage I's
+    radiance (``radiance``, the field) reaches in their place."""
     field = fit.field
     views = render_views(field, poses, optics, device)
     result: dict = {}
+    before = render_views(radiance, poses, optics, device)["radiance"] if truth else None
     if truth:
-        result.update(material_metrics(views, truth))
+        result.update(material_metrics(views, truth, before))
     name = "test" if truth else "path"
     cc = fit_color_correction(views["radiance"], truth["radiance"]) if "radiance" in truth else None
     write_views(views, out / "renders" / "material", name, cc)
@@ -339,7 +345,7 @@ def _material_outputs(fit, poses, truth, optics, environment, out: Path, device,
         new = light_from_image(environment, light[0].shape[-1], device)
         relit = render_views(field, poses, optics, device, new)
         if "relit_radiance" in truth:
-            result.update(relit_metrics(relit["radiance"], truth))
+            result.update(relit_metrics(relit["radiance"], truth, before))
         for i, image in enumerate(relit["radiance"]):
             write_image(image, out / "renders" / "relit" / f"{name}_{i:03d}.png")
         write_image(environment_image(new), out / "renders" / "relit" / "environment.png")

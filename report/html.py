@@ -84,6 +84,11 @@ METRICS = {
     "base_color_ssim": ("base color SSIM", "", "stage II (material)"),
     "base_color_psnr_cc": ("base color PSNR, color-corrected", "dB", "stage II (material)"),
     "base_color_ssim_cc": ("base color SSIM, color-corrected", "", "stage II (material)"),
+    "base_color_psnr_cc_baseline": (
+        "stage I's radiance taken as the base color, PSNR color-corrected",
+        "dB",
+        "stage II (material)",
+    ),
     "base_color_psnr_cc_shadow": ("base color PSNR in shadows", "dB", "stage II (material)"),
     "shadow_share": ("surface in shadow", "fraction", "stage II (material)"),
     "base_color_psnr_cc_bleeding": (
