@@ -203,8 +203,6 @@ class Renderer:
             env[a:b] = sky.mean(1) * np.pi
             if progress:
                 progress(b, n_vert)
-        if not light.shadows:
-            env = unshadowed
         # the shadow factor of the ground truth (RenderResult.visibility) needs the unshadowed too
         self.vertex_env, self.vertex_env_unshadowed = env, unshadowed
         self.vertex_bounce = np.zeros((n_vert, 3))

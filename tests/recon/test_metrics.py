@@ -66,3 +66,20 @@ def test_depth_error_relative_to_the_distance(scene):
     _, depth = scene
     assert depth_rel_err(depth * 1.02, depth) == pytest.approx(0.02, rel=1e-5)
     assert np.isnan(depth_rel_err(depth, np.zeros_like(depth)))
+
+
+def test_the_radiance_as_base_color_baseline(scene):
+    """Shading that is one tint over the object is what the correction forgives: the radiance
+    itself then scores as the base color; shading that varies across it is not."""
+    from evcap.recon.evaluate import material_metrics
+
+    base, depth = scene
+    surface = depth > 0
+    normal = np.where(surface[..., None], [0.0, 0.0, -1.0], 0.0).astype(np.float32)
+    truth = {"base_color": base, "normal": normal}
+    views = {"base_color": base, "normal": normal}
+    tint = material_metrics(views, truth, base * [0.9, 0.7, 0.4])
+    assert tint["base_color_psnr_cc_baseline"] > 60
+    x = np.linspace(0.3, 1.0, base.shape[2])
+    varying = material_metrics(views, truth, base * x[None, None, :, None])
+    assert varying["base_color_psnr_cc_baseline"] < 30 < varying["base_color_psnr_cc"]

@@ -161,6 +161,9 @@ def test_material_stage_resumes_from_the_checkpoint(color_session, color_result,
     assert result["gaussians"] == first["gaussians"]  # stage I untouched
     # without --relight, the held-out views are relit by the truth's second light and scored
     assert "relit_psnr" not in first and np.isfinite(result["relit_object_psnr_cc"])
+    # beside them, what no decomposition and no relighting reach
+    assert np.isfinite(result["relit_object_psnr_cc_baseline"])
+    assert np.isfinite(result["base_color_psnr_cc_baseline"])
     with pytest.raises(InputError, match="no stage-I checkpoint"):
         reconstruct(color_session, tmp_path / "empty", preset="tiny", stage="material")
 
