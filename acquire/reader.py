@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import queue
 import threading
+import time
 from dataclasses import dataclass
 
 from evcap.acquire.transfers import BulkStream, Status
@@ -57,10 +58,12 @@ class BulkReader:
         for the first)."""
         chunks = []
         size = 0
+        if timeout_s > 0 and self._chunks.empty():
+            # not SimpleQueue.get(timeout=): on CPython 3.11 a signal whose handling outlasts
+            # the timeout leaves it waiting forever (a recorder hung so after SIGTERM)
+            time.sleep(timeout_s)
         try:
-            chunk = (
-                self._chunks.get(timeout=timeout_s) if timeout_s > 0 else self._chunks.get_nowait()
-            )
+            chunk = self._chunks.get_nowait()
             while True:
                 chunks.append(chunk)
                 size += len(chunk)

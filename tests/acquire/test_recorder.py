@@ -191,6 +191,21 @@ def test_signal_closes_the_session_complete(tmp_path, fixture_copy, sig):
         assert s.complete and s.n_events == 60_000 and s.attrs["end_reason"] == "stopped"
 
 
+def test_a_slow_signal_handler_does_not_hang_the_wait_for_data():
+    """A signal handled while the loop waits for USB data, taking longer than the wait:
+    the wait still ends (SimpleQueue.get(timeout=) waited forever there on Python 3.11)."""
+    code = (
+        "import signal, time\n"
+        "from evcap.acquire.reader import BulkReader\n"
+        "signal.signal(signal.SIGALRM, lambda signum, frame: time.sleep(0.05))\n"
+        "signal.setitimer(signal.ITIMER_REAL, 0.002)\n"
+        "assert BulkReader(None, 1).take(0.01) == []\n"
+        "print('returned')\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30)
+    assert r.returncode == 0 and "returned" in r.stdout, r.stderr
+
+
 def test_kill_9_leaves_a_readable_file_with_what_was_flushed(tmp_path, fixture_copy):
     out = tmp_path / "s.h5"
     proc = start_recording(
