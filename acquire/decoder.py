@@ -7,7 +7,9 @@ Unknown or malformed words are counted in ``counters`` and skipped, never fatal.
 
 Times are made host-continuous: device timestamps (with their wraps) plus an offset that a
 timestamp reset advances, so that the output never goes back in time. A word that would make
-time go backwards (corruption) is counted and does not move the clock.
+time go backwards (corruption) is counted and does not move the clock; so is a wrap word that
+jumps further than a running camera's clock can between two words (a few such bytes from a
+flaky cable would otherwise make a session span hours or years), which is taken as one wrap.
 """
 
 from __future__ import annotations
@@ -21,6 +23,9 @@ from evcap.events import Events
 from evcap.streams import Frames, ImuSamples, TriggerKind, Triggers
 
 STANDARD_GRAVITY = 9.80665
+# The most wraps (32.768 ms each) one wrap word may carry: a running DAVIS346 sends words all
+# the time (noise events, the IMU at 1 kHz, frames), so a second without any is not plausible
+MAX_WRAPS_PER_WORD = 30
 
 # Indices into the state array S.
 _NOW, _WRAP, _BASE, _LASTY, _APS_IGNORE, _IMU_IGNORE = 0, 1, 2, 3, 4, 5
@@ -45,6 +50,7 @@ COUNTER_NAMES = (
     "timestamp_resets",
     "time_went_backwards",
     "odd_bytes",
+    "timestamp_jumps",
 )
 (
     _C_WORDS,
@@ -59,6 +65,7 @@ COUNTER_NAMES = (
     _C_RESETS,
     _C_BACKWARDS,
     _C_ODD,
+    _C_JUMPS,
 ) = range(len(COUNTER_NAMES))
 
 # Indices into the geometry array G.
@@ -140,6 +147,9 @@ def _decode_words(words, pos, S, C, G, specials, events, n_ev, triggers, n_tr, i
         S[_NOW] = now
         S[_LASTY] = last_y
         if code == 7:  # timestamp wrap: data counts wraps
+            if data > MAX_WRAPS_PER_WORD:
+                C[_C_JUMPS] += 1
+                data = 1
             S[_WRAP] += 0x8000 * data
             t = S[_WRAP] + S[_BASE]
             if t >= S[_NOW]:

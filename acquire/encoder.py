@@ -14,7 +14,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from evcap.acquire.decoder import STANDARD_GRAVITY, Geometry
+from evcap.acquire.decoder import MAX_WRAPS_PER_WORD, STANDARD_GRAVITY, Geometry
 from evcap.errors import InputError
 from evcap.events import Events
 from evcap.streams import Frames, ImuSamples, TriggerKind, Triggers
@@ -55,8 +55,8 @@ def _encode_events(x, y, t, p, state, out):
         ti = t[i]
         if ti != now:
             k = (ti - wrap) // 0x8000
-            while k > 0:  # a wrap word carries at most 4095 wraps
-                step = min(k, 4095)
+            while k > 0:
+                step = min(k, MAX_WRAPS_PER_WORD)
                 out[n] = 0x7000 | step
                 n += 1
                 wrap += 0x8000 * step
@@ -103,7 +103,7 @@ class StreamEncoder:
         if dev != now:
             k = (dev - wrap) // WRAP
             while k > 0:
-                step = min(k, 4095)
+                step = min(k, MAX_WRAPS_PER_WORD)
                 words.append(0x7000 | step)
                 wrap += WRAP * step
                 k -= step
@@ -254,9 +254,9 @@ class StreamEncoder:
         if t.size and int(t[0]) < int(self._state[0]):
             raise InputError("encoder: events go back in time")
         # At most: per event one row, one column, one timestamp and (for a long gap) wrap words
-        # of up to 4095 wraps each.
+        # of up to MAX_WRAPS_PER_WORD wraps each.
         wraps = int((t[-1] - self._state[1]) // WRAP) if t.size else 0
-        out = np.zeros(4 * t.size + wraps // 4095 + 2, np.uint16)
+        out = np.zeros(4 * t.size + wraps // MAX_WRAPS_PER_WORD + 2, np.uint16)
         state = self._state.copy()
         state[3] = 0
         x, y = events.x[start:stop], events.y[start:stop]

@@ -33,6 +33,7 @@ import usb.backend
 import usb.core
 
 from evcap.acquire import protocol as P
+from evcap.acquire.decoder import MAX_WRAPS_PER_WORD
 from evcap.errors import InputError
 
 DEFAULT_TRANSFER = 8192
@@ -99,17 +100,19 @@ class Fixture:
 
 def stream_times(bulk: bytes) -> np.ndarray:
     """The stream's time (us, host-continuous) at each of its words: the last timestamp
-    before it, with wraps counted and timestamp resets continuing from the time they came."""
+    before it, with wraps counted (as the decoder counts them: an implausible jump as one wrap)
+    and timestamp resets continuing from the time they came."""
     w = np.frombuffer(bulk, "<u2", count=len(bulk) // 2).astype(np.int64)
     is_ts = (w & 0x8000) != 0
     code = (w >> 12) & 7
     is_wrap = ~is_ts & (code == 7)
     is_reset = ~is_ts & (code == 0) & ((w & 0xFFF) == 1)
+    wraps = np.where((w & 0xFFF) > MAX_WRAPS_PER_WORD, 1, w & 0xFFF)
     times = np.zeros(w.size, np.int64)
     base = 0
     bounds = [0, *np.flatnonzero(is_reset).tolist(), w.size]
     for a, b in zip(bounds[:-1], bounds[1:], strict=True):  # one segment per reset
-        wrap = np.cumsum(np.where(is_wrap[a:b], (w[a:b] & 0xFFF) * 0x8000, 0))
+        wrap = np.cumsum(np.where(is_wrap[a:b], wraps[a:b] * 0x8000, 0))
         value = np.where(is_ts[a:b], wrap + (w[a:b] & 0x7FFF), np.where(is_wrap[a:b], wrap, 0))
         times[a:b] = base + np.maximum.accumulate(value) if b > a else 0
         base = int(times[b - 1]) if b > a else base

@@ -176,6 +176,15 @@ def _cmd_record(args: argparse.Namespace) -> int:
         f"{args.output}: {r.events:,} events, {r.frames:,} frames, {r.imu:,} IMU samples, "
         f"{r.triggers:,} triggers ({r.end_reason}; dropped on the device: {dropped:,})"
     )
+    c = r.decoder or {}
+    bad = sum(c.get(k, 0) for k in ("unknown_words", "time_went_backwards", "timestamp_jumps"))
+    if bad > 0.001 * c.get("words", 0):
+        print(
+            f"warning: {bad:,} of {c['words']:,} words from the camera were malformed (unknown "
+            "codes, time going back or jumping ahead): check the USB cable and port; they were "
+            "skipped, and are counted in the session's decoder_counters",
+            file=sys.stderr,
+        )
     return 0
 
 

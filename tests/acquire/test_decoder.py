@@ -35,6 +35,22 @@ def test_wrap_words_count_wraps():
     assert out.events.t.tolist() == [3 * 0x8000, 3 * 0x8000 + 5, 4 * 0x8000]
 
 
+def test_an_implausible_wrap_jump_is_counted_and_taken_as_one_wrap():
+    # 4,000 wraps in one word: over two minutes without a single word from a running camera
+    out, d = decode([0x7001, 0x3001, 0x7000 | 4000, 0x8005, 0x3002, 0x7000 | 30, 0x3003])
+    assert out.events.t.tolist() == [0x8000, 2 * 0x8000 + 5, 32 * 0x8000]
+    assert d.counters["timestamp_jumps"] == 1
+
+
+def test_random_bytes_do_not_make_a_long_session():
+    # a flaky cable's bytes: before the jumps were bounded, 658 kB of them spanned a month
+    data = np.random.default_rng(3).integers(0, 256, 658_000, np.uint8).tobytes()
+    d = StreamDecoder(Geometry())
+    out = d.decode(data)
+    assert out.events.t[-1] - out.events.t[0] < 3600e6  # under an hour (measured: 12 minutes)
+    assert d.counters["timestamp_jumps"] > 10_000
+
+
 def test_out_of_range_addresses_are_counted_and_skipped():
     out, d = decode([0x8001, 0x1005, 0x1000 | 260, 0x3001, 0x2000 | 346, 0x3000 | 400])
     assert out.events.y.tolist() == [5]  # the bad row keeps the latched one

@@ -147,6 +147,22 @@ def test_cli_disconnect_keeps_everything_before_and_fails(tmp_path):
     assert_expected_content(out, FIXTURES / "disconnect")
 
 
+def test_a_flaky_cables_bytes_give_a_short_session_and_a_warning(tmp_path, fixture_copy):
+    # random bytes for the stream: before wrap jumps were bounded, 658 kB made a month-long
+    # millisecond index and the kernel killed the recorder; 4 kB made a MemoryError
+    path = fixture_copy("corrupted")
+    rng = np.random.default_rng(1)
+    (path / "bulk.bin").write_bytes(rng.integers(0, 256, 658_000, np.uint8).tobytes())
+    (path / "transfers.u32").unlink()
+    out = tmp_path / "s.h5"
+    r = evcap("record", "--device", f"replay:{path}", "-o", str(out), "--no-tui")
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    assert "malformed" in r.stderr and "USB cable" in r.stderr
+    with Session.open(out) as s:
+        assert s.time_range()[1] - s.time_range()[0] < 3600e6
+        assert json.loads(s.attrs["decoder_counters"])["timestamp_jumps"] > 10_000
+
+
 def idle_fixture(fixture_copy) -> Path:
     """color-scene, then a camera that stays quiet (timeouts) for minutes."""
     path = fixture_copy("color-scene")
