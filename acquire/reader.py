@@ -1,8 +1,10 @@
 """The reader thread: keeps bulk transfers in flight and hands the bytes over, in order.
 
-Nothing received is dropped: the queue to the consumer is unbounded. Timeouts and stalls are
-recovered from (a stall is cleared and the transfer resubmitted); a vanished device ends the
-reader with ``lost`` set.
+Nothing received is dropped. The bytes waiting for the consumer are bounded: past the bound a
+completed transfer is not resubmitted until the consumer catches up, so the camera holds the
+data (and, if it overflows, drops events and counts them in its own registers) instead of this
+process's memory growing without end. Timeouts and stalls are recovered from (a stall is cleared
+and the transfer resubmitted); a vanished device ends the reader with ``lost`` set.
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ from dataclasses import dataclass
 from evcap.acquire.transfers import BulkStream, Status
 
 MAX_CONSECUTIVE_ERRORS = 20
+# received and not yet taken; a consumer decodes and writes this much in well under a second
+MAX_QUEUED_BYTES = 32 << 20
 
 
 @dataclass
@@ -24,15 +28,22 @@ class ReaderStats:
     timeouts: int = 0
     stalls: int = 0
     errors: int = 0
+    waits: int = 0  # transfers held back while the consumer caught up
 
 
 class BulkReader:
     """Runs ``stream`` with ``count`` transfers in flight in its own thread."""
 
-    def __init__(self, stream: BulkStream, count: int) -> None:
+    def __init__(
+        self, stream: BulkStream, count: int, max_queued_bytes: int = MAX_QUEUED_BYTES
+    ) -> None:
         self._stream = stream
         self._count = count
         self._chunks: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        self._max_queued = max_queued_bytes
+        self._queued = 0  # bytes in _chunks
+        self._queued_lock = threading.Lock()
+        self._held: list[int] = []  # slots not resubmitted while the queue is full
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="evcap-usb-reader", daemon=True)
         self.stats = ReaderStats()
@@ -53,7 +64,7 @@ class BulkReader:
         self._thread.join(timeout_s)
         return not self._thread.is_alive()
 
-    def take(self, timeout_s: float = 0.0, max_bytes: int = 16 << 20) -> list[bytes]:
+    def take(self, timeout_s: float = 0.0, max_bytes: int = 4 << 20) -> list[bytes]:
         """The chunks received so far, up to about ``max_bytes`` (waiting up to ``timeout_s``
         for the first)."""
         chunks = []
@@ -72,11 +83,15 @@ class BulkReader:
                 chunk = self._chunks.get_nowait()
         except queue.Empty:
             pass
+        with self._queued_lock:
+            self._queued -= size
         return chunks
 
     def _handle(self, slot: int, status: Status, data: bytes, resubmit: bool) -> None:
         s = self._stream
         if data:  # a cancelled or failed transfer may still carry data: keep it
+            with self._queued_lock:
+                self._queued += len(data)
             self._chunks.put(data)
             self.stats.transfers += 1
             self.stats.bytes += len(data)
@@ -97,7 +112,11 @@ class BulkReader:
         if status == Status.COMPLETED:
             self._errors_in_a_row = 0
         if resubmit and status != Status.CANCELLED:
-            s.submit(slot)
+            if self._queued > self._max_queued:
+                self._held.append(slot)
+                self.stats.waits += 1
+            else:
+                s.submit(slot)
 
     def _run(self) -> None:
         s = self._stream
@@ -108,6 +127,10 @@ class BulkReader:
             while not self._stop.is_set() and self.lost is None:
                 for slot, status, data in s.poll(0.05):
                     self._handle(slot, status, data, resubmit=self.lost is None)
+                if self._held and self._queued <= self._max_queued // 2:
+                    for slot in self._held:
+                        s.submit(slot)
+                    self._held.clear()
             s.cancel()
             while s.in_flight:
                 for slot, status, data in s.poll(0.05):

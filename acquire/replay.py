@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import array
 import errno
+import mmap
 import threading
 import time
 import tomllib
@@ -37,6 +38,7 @@ from evcap.acquire.decoder import MAX_WRAPS_PER_WORD
 from evcap.errors import InputError
 
 DEFAULT_TRANSFER = 8192
+RELEASE_BYTES = 16 << 20  # served pages of bulk.bin are given back in steps this big (page-aligned)
 IDLE_WAIT_S = 0.005  # how long a read that times out blocks (a real one waits its timeout)
 # libusb error codes, as pyusb's libusb1 backend reports them.
 _LIBUSB_ERROR_TIMEOUT = -7
@@ -58,7 +60,7 @@ class Fixture:
     path: Path
     usb: dict
     registers: dict[tuple[int, int], int]
-    bulk: bytes
+    bulk: bytes | mmap.mmap  # mapped, not read: a long fixture is no part of a recorder's memory
     transfers: np.ndarray
     faults: list[Fault]
 
@@ -95,7 +97,14 @@ class Fixture:
                     )
                 faults.append(Fault(int(f["at_byte"]), f["kind"], int(f.get("count", 1))))
         faults.sort(key=lambda f: f.at_byte)
-        return cls(path, usb_desc, registers, (path / "bulk.bin").read_bytes(), transfers, faults)
+        return cls(path, usb_desc, registers, _map(path / "bulk.bin"), transfers, faults)
+
+
+def _map(path: Path) -> bytes | mmap.mmap:
+    with path.open("rb") as f:
+        if f.seek(0, 2) == 0:
+            return b""  # an empty file cannot be mapped
+        return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
 
 
 def stream_times(bulk: bytes) -> np.ndarray:
@@ -152,6 +161,7 @@ class ReplayBackend(usb.backend.IBackend):
         self.writes: list[tuple[int, int, int]] = []  # every register write, in order
         self._lock = threading.Lock()
         self._pos = 0  # bytes of bulk.bin served
+        self._released = 0  # bytes of bulk.bin whose pages were given back
         self._transfer = 0  # index into transfers.u32
         self._faults = list(self.fixture.faults)
         self._timeouts_left = 0
@@ -400,4 +410,14 @@ class ReplayBackend(usb.backend.IBackend):
             n = end - self._pos
             buff[:n] = array.array("B", bulk[self._pos : end])
             self._pos = end
+            self._release_served()
             return n
+
+    def _release_served(self) -> None:
+        """Unmap the pages of bulk.bin already served: a camera's data is no part of the
+        memory of the process that records it, and a replay should measure as one."""
+        bulk = self.fixture.bulk
+        done = self._pos - self._pos % RELEASE_BYTES
+        if isinstance(bulk, mmap.mmap) and done > self._released:
+            bulk.madvise(mmap.MADV_DONTNEED, self._released, done - self._released)
+            self._released = done

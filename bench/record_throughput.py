@@ -1,6 +1,7 @@
 """End-to-end recording throughput: a replay camera serving a dense stream (12 Mev/s of events,
 frames at 25 fps, IMU at 1 kHz) as fast as it can, through the reader thread, the decoder and
-the session writer, into a session file.
+the session writer, into a session file. Then `evcap record` on it as a user runs it: its peak
+memory, and how soon it ends after Ctrl-C (SIGINT) with the backlog it has then.
 
     .venv/bin/python bench/record_throughput.py [--seconds S]
 """
@@ -8,6 +9,9 @@ the session writer, into a session file.
 from __future__ import annotations
 
 import argparse
+import signal
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -31,6 +35,23 @@ def make_fixture(folder: Path, data: bytes, transfer_size: int) -> None:
     (folder / "bulk.bin").write_bytes(data)
 
 
+def peak_memory_mb(child: subprocess.Popen) -> float:
+    """The child's peak resident memory (VmHWM, Linux), followed until it ends."""
+    peak = 0.0
+    while child.poll() is None:
+        try:
+            status = Path(f"/proc/{child.pid}/status").read_text()
+        except OSError:
+            break
+        for line in status.splitlines():
+            if line.startswith("VmHWM:"):
+                peak = max(peak, int(line.split()[1]) / 1024)
+        time.sleep(0.05)
+    if child.wait():
+        raise RuntimeError(f"evcap record failed ({child.returncode})")
+    return peak
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seconds", type=float, default=4.0, help="stream length (device time)")
@@ -39,6 +60,9 @@ def main() -> None:
         type=int,
         default=8192,
         help="bytes per bulk transfer (the replay serves transfers this big)",
+    )
+    parser.add_argument(
+        "--interrupt-after", type=float, default=2.0, help="seconds before the SIGINT"
     )
     args = parser.parse_args()
     data, n_events = dense_stream(args.seconds)
@@ -55,6 +79,17 @@ def main() -> None:
         with Session.open(out) as s:
             assert s.n_events == n_events, (s.n_events, n_events)
             size = out.stat().st_size
+        record = [sys.executable, "-m", "evcap", "record", "--device", f"replay:{fixture}"]
+        record += ["-o", str(out), "--no-tui", "-f"]
+        peak_mb = peak_memory_mb(subprocess.Popen(record))
+        child = subprocess.Popen(record, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        time.sleep(args.interrupt_after)
+        interrupted = time.perf_counter()
+        child.send_signal(signal.SIGINT)
+        child.wait()
+        exit_s = time.perf_counter() - interrupted
+        with Session.open(out) as s:  # opening validates it: complete, index and all
+            kept = s.n_events
     report(
         "record_throughput",
         {
@@ -66,6 +101,9 @@ def main() -> None:
             "record_Mev_per_s": n_events / wall / 1e6,
             "realtime_factor": args.seconds / wall,
             "session_MB": size / 1e6,
+            "cli_peak_memory_MB": peak_mb,
+            "cli_exit_after_sigint_s": exit_s,
+            "cli_events_kept_at_sigint": kept,
         },
     )
 
