@@ -13,6 +13,7 @@ import ctypes
 import datetime
 import gc
 import os
+import re
 import shutil
 import sys
 import time
@@ -567,6 +568,15 @@ def _open_swmr(path: Path) -> h5py.File:
     return h5py.File(fid)
 
 
+def _cut_too_short(f: h5py.File) -> bool:
+    """A truncated file that is no recording cut short: complete (so nothing may be missing),
+    or cut before the end of its own root attributes."""
+    try:
+        return bool(f.attrs.get("complete", False)) or "schema_version" not in f.attrs
+    except (RuntimeError, OSError, KeyError):  # HDF5: the attributes lie past the cut
+        return True
+
+
 def _open_h5(path: Path) -> h5py.File:
     if not path.exists():
         raise InputNotFoundError(f"{path}: no such file")
@@ -589,12 +599,19 @@ def _open_h5(path: Path) -> h5py.File:
         except OSError:
             pass
         else:
-            if "truncated" in str(error) and f.attrs.get("complete", False):
+            if "truncated" in str(error) and _cut_too_short(f):
                 f.close()
             else:
                 return f
     if "truncated" in str(error):
-        raise SessionFormatError(f"{path} is truncated: {str(error).splitlines()[0]}")
+        sizes = re.search(r"eof = (\d+).*stored_eof = (\d+)", str(error))
+        if sizes is None:
+            raise SessionFormatError(f"{path} is truncated: {str(error).splitlines()[0]}")
+        have, wrote = (int(v) for v in sizes.groups())
+        raise SessionFormatError(
+            f"{path} is truncated: it has {have:,} of the {wrote:,} bytes it was written with "
+            "(copied or downloaded only in part?); copy it again"
+        )
     raise SessionFormatError(
         f"{path} cannot be read as HDF5 (corrupt or truncated?): {str(error).splitlines()[0]}"
     )
