@@ -5,6 +5,7 @@ the session's /calibration group with the biases it was measured under."""
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -271,8 +272,27 @@ def calibrate(
     )
 
 
-def write_calibration(path: str | Path, cal: Calibration) -> None:
-    """Replace the session's /calibration with ``cal`` (checked against its sensor size)."""
+def check_targets(paths: list[str | Path]) -> None:
+    """Each session a calibration will be written to opens and may be written: checked before
+    anything is computed or written."""
+    for path in paths:
+        with Session.open(path):
+            pass
+        if not os.access(path, os.W_OK):
+            raise InputError(f"{path}: no permission to write to it")
+
+
+def write_calibration(paths: list[str | Path], cal: Calibration) -> None:
+    """Replace the sessions' /calibration with ``cal``, after checking every one of them
+    against it (its sensor size), so that a bad target leaves all of them as they were."""
+    check_targets(paths)
+    attrs = [_calibration_attrs(path, cal) for path in paths]
+    for path, a in zip(paths, attrs, strict=True):
+        write_group(path, "calibration", cal.datasets(), a, replace=True)
+
+
+def _calibration_attrs(path: str | Path, cal: Calibration) -> dict:
+    """``cal``'s attributes as written to the session ``path`` (checked against its sensor)."""
     with Session.open(path) as s:
         size = (s.sensor.width, s.sensor.height)
         biases, _ = _biases(s)
@@ -289,7 +309,7 @@ def write_calibration(path: str | Path, cal: Calibration) -> None:
         attrs["warnings"] = json.dumps(
             [*cal.warnings, f"{path} was recorded under other biases ({', '.join(differ)})"]
         )
-    write_group(path, "calibration", cal.datasets(), attrs, replace=True)
+    return attrs
 
 
 def _stored(s: Session) -> dict:

@@ -337,8 +337,10 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     if args.session is None:
         raise InputError("give the session to calibrate (or only --print-board OUT.png)")
     from evcap._progress import progress_bar
-    from evcap.calib.calibrate import calibrate, write_calibration
+    from evcap.calib.calibrate import calibrate, check_targets, write_calibration
 
+    targets = [args.session, *(args.apply_to or ())]
+    check_targets(targets)  # before minutes of work
     with progress_bar("calibrating") as update:
         cal = calibrate(
             args.session,
@@ -347,11 +349,9 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
             say=print,
             progress=update,
         )
-    for path in [args.session, *(args.apply_to or ())]:
-        write_calibration(path, cal)
+    write_calibration(targets, cal)
     print(cal.summary())
-    targets = ", ".join(str(p) for p in [args.session, *(args.apply_to or ())])
-    print(f"written to /calibration of {targets}")
+    print(f"written to /calibration of {', '.join(str(p) for p in targets)}")
     if args.report:
         from evcap.calib.report import write_report
 

@@ -211,8 +211,7 @@ def _calibrate(ctx: DemoContext) -> str:
 
     with ctx.progress("calibrating") as update:
         cal = calibrate(ctx.calibration, progress=update)
-    for path in (ctx.calibration, ctx.scene):
-        write_calibration(path, cal)
+    write_calibration([ctx.calibration, ctx.scene], cal)
     return cal.summary().replace("\n", "; ")
 
 

@@ -11,7 +11,7 @@ import pytest
 from evcap.calib.calibrate import calibrate
 from evcap.cli import main
 from evcap.errors import CalibrationError
-from evcap.session import Session, SessionWriter
+from evcap.session import SensorInfo, Session, SessionWriter
 from evcap.sim.scene import load_scene
 from evcap.sim.simulate import simulate
 
@@ -86,6 +86,22 @@ def test_calibrate_measures_the_simulated_sensor(board_session, tmp_path, capsys
     found = hot & hot_true
     assert found.sum() / hot.sum() > 0.95 and found.sum() / hot_true.sum() > 0.95
     assert report.stat().st_size > 10_000
+
+
+def test_a_bad_apply_to_target_leaves_every_session_as_it_was(board_session, tmp_path, capsys):
+    session = copy_session(board_session, tmp_path / "board.h5")
+    before = session.read_bytes()
+    code = main(["calibrate", str(session), "--board", BOARD, "--apply-to", str(tmp_path / "x.h5")])
+    assert code == 2 and "x.h5: no such file" in capsys.readouterr().err
+    # a session from another sensor: found out only once the calibration is known
+    other = tmp_path / "other.h5"
+    with SessionWriter(other, SensorInfo("DAVIS346", 346, 260)):
+        pass
+    code = main(["calibrate", str(session), "--board", BOARD, "--apply-to", str(other)])
+    assert code == 2 and "the calibration is for 200 x 150" in capsys.readouterr().err
+    assert session.read_bytes() == before
+    with h5py.File(other, "r") as f:
+        assert "calibration" not in f
 
 
 def test_the_simulator_takes_a_measured_sensor(board_session, tiny_scene, tmp_path):
