@@ -18,6 +18,8 @@ from evcap.errors import InputError
 from evcap.recon.optics import SensorOptics
 from evcap.session import Session
 
+MIN_EVENTS = 1000  # fewer than this say nothing of a scene: refused before minutes of fitting
+
 
 @dataclass
 class EventWindows:
@@ -53,6 +55,12 @@ class EventWindows:
             )
         w = session.sensor.width
         i0, i1 = session.event_index(int(times[0])), session.event_index(int(times[-1]))
+        if i1 - i0 < MIN_EVENTS:
+            raise InputError(
+                f"{session.path}: {i1 - i0:,} events in the {span / 1e6:.2f} s that have poses; "
+                f"a reconstruction needs at least {MIN_EVENTS:,} (record the camera moving "
+                "around the scene for a few seconds)"
+            )
         codes = np.empty(i1 - i0, np.int32)
         starts = np.zeros(len(times), np.int64)
         done = 0

@@ -17,7 +17,7 @@ from evcap.recon import config as cfg
 from evcap.recon.export import read_ply_header
 from evcap.recon.radiance import RadianceField, load_training_data, new_field, train_radiance
 from evcap.recon.reconstruct import reconstruct
-from evcap.session import Session
+from evcap.session import Session, SessionWriter
 from evcap.sim.scene import load_scene
 from evcap.sim.simulate import simulate
 
@@ -238,6 +238,29 @@ def test_missing_poses_is_a_clear_error(color_session, tmp_path):
         del f["poses"]
     with pytest.raises(InputError, match="no camera poses.*evcap poses"):
         reconstruct(session, tmp_path / "out", preset="tiny")
+
+
+@pytest.mark.parametrize("n", [0, 100])
+def test_too_few_events_are_refused_at_once(color_session, tmp_path, n):
+    session = tmp_path / "few.h5"
+    with Session.open(color_session) as s:
+        sensor, events = s.sensor, s.events()
+    with SessionWriter(session, sensor) as w:
+        keep = np.zeros(len(events), bool)
+        keep[np.linspace(0, len(events) - 1, n).astype(int)] = True  # over the whole path
+        w.append_events(events.select(keep))
+    with h5py.File(color_session, "r") as src, h5py.File(session, "a") as dst:
+        for group in ("poses", "calibration"):
+            src.copy(src[group], dst, group)
+    r = subprocess.run(
+        [sys.executable, "-m", "evcap", "reconstruct", str(session), "-o", str(tmp_path / "o")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert ("no events" if n == 0 else "needs at least 1,000") in r.stderr, r.stderr
+    assert not (tmp_path / "o").exists()
 
 
 def test_cli_writes_a_reconstruction(color_session, tmp_path):
