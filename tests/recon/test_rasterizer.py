@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from evcap.errors import NumericalError
 from evcap.recon import _raster_torch
 from evcap.recon._raster_reference import rasterize_reference
 from evcap.recon.rasterize import Camera, camera_normals, rasterize
@@ -128,3 +129,17 @@ def test_gsplat_agrees_with_torch():
     for a, b in zip(grads[0], grads[1], strict=True):
         cos = torch.nn.functional.cosine_similarity(a.flatten(), b.flatten(), dim=0)
         assert cos > 0.98
+
+
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+def test_a_non_finite_gaussian_is_refused_not_rendered(backend):
+    # a NaN mean rendered a finite image whose gradients were NaN, and nothing said so
+    means, quats, log_scales, opac, colors = tiny_gaussians()
+    bad = means.detach().clone()
+    bad[3, 1] = float("nan")
+    with pytest.raises(
+        NumericalError, match=r"means not finite \(NaN or infinite\) for 1 of 7 Gaussians"
+    ):
+        rasterize(bad, quats, log_scales.exp(), opac, colors, tiny_camera(), backend=backend)
+    with pytest.raises(ValueError, match=r"quats must be \[7, 4\], not \[7, 3\]"):
+        rasterize(means, quats[:, :3], log_scales.exp(), opac, colors, tiny_camera())
