@@ -30,7 +30,17 @@ class Environment:
         sky = dict(spec.sky)
         if spec.environment != "sky":
             self.image = read_image_linear(Path(spec.environment))
-        known = {"zenith", "horizon", "ground", "sun_direction", "sun_irradiance", "sun_radius_deg"}
+        known = {
+            "zenith",
+            "horizon",
+            "ground",
+            "sun_direction",
+            "sun_irradiance",
+            "sun_radius_deg",
+            "lobe_direction",
+            "lobe_radiance",
+            "lobe_width_deg",
+        }
         if set(sky) - known:
             raise InputError(f"lighting.sky: unknown key(s) {', '.join(sorted(set(sky) - known))}")
         self.zenith = np.asarray(sky.get("zenith", [0.35, 0.55, 1.0]), np.float64)
@@ -41,6 +51,13 @@ class Environment:
         irr = sky.get("sun_irradiance", 0.0)
         self.sun_irradiance = np.broadcast_to(np.asarray(irr, np.float64), (3,)).copy()
         self.sun_radius = np.deg2rad(float(sky.get("sun_radius_deg", 0.5)))
+        # a broad glow from one side (a window, a lamp behind a diffuser): light with a direction
+        # that a smooth environment table still holds
+        lobe = np.asarray(sky.get("lobe_direction", [1.0, 0.0, 0.0]), np.float64)
+        self.lobe_direction = lobe / np.linalg.norm(lobe)
+        lobe_rgb = sky.get("lobe_radiance", 0.0)
+        self.lobe_radiance = np.broadcast_to(np.asarray(lobe_rgb, np.float64), (3,)).copy()
+        self.lobe_width = np.deg2rad(float(sky.get("lobe_width_deg", 30.0)))
 
     def radiance(self, dirs: np.ndarray) -> np.ndarray:
         """[N, 3] world directions -> [N, 3] radiance (without the sun, which is analytic)."""
@@ -63,7 +80,12 @@ class Environment:
         sky = self.horizon + (self.zenith - self.horizon) * up
         # a smooth blend into the ground below the horizon (no discontinuity to fire events)
         below = np.clip(-z / 0.05, 0, 1)
-        return (sky * (1 - below) + self.ground * below) * self.scale
+        out = sky * (1 - below) + self.ground * below
+        if self.lobe_radiance.any():
+            # falls to 1/e at lobe_width from its direction
+            fall = (1 - d @ self.lobe_direction) / (1 - np.cos(self.lobe_width))
+            out = out + np.exp(-fall)[:, None] * self.lobe_radiance
+        return out * self.scale
 
     def table(self, width: int = 1024) -> np.ndarray:
         """The radiance [width / 2, width, 3] on a latitude-longitude grid of world directions

@@ -28,8 +28,9 @@ from evcap.sim.raytrace import Bvh
 from evcap.sim.scene import Material, Scene
 
 SHADOW_BIAS = 1e-4  # scene units: shadow rays start this far off the surface
-# what a render holds changes with this (2: the environment by Monte Carlo); sessions record it
-RENDERER_VERSION = 2
+# what a render holds changes with this (2: the environment by Monte Carlo; 3: the relighting
+# light has a glow from one side); sessions record it
+RENDERER_VERSION = 3
 
 
 @dataclass

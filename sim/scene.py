@@ -118,12 +118,16 @@ class ImuSpec:
     accel_noise: float = 0.0  # m/s^2
 
 
-# The held-out views' second light, for relighting truth: a low warm sky over a dark blue
-# ground, unlike the scenes' own daylight
+# The held-out views' second light, for relighting truth: a dim sky over a dark blue ground and
+# a broad warm glow from one low side, so that relit views differ from the scene's own light in
+# where the light comes from, not only in its tint (a per-channel correction absorbs a tint)
 RELIGHT_SKY = {
-    "zenith": [0.9, 0.55, 0.3],
-    "horizon": [1.0, 0.75, 0.45],
-    "ground": [0.1, 0.14, 0.25],
+    "zenith": [0.3, 0.22, 0.15],
+    "horizon": [0.45, 0.35, 0.25],
+    "ground": [0.06, 0.08, 0.14],
+    "lobe_direction": [-0.5, 0.8, 0.35],
+    "lobe_radiance": [2.4, 1.7, 1.0],
+    "lobe_width_deg": 35.0,
 }
 
 
