@@ -184,9 +184,10 @@ class _Table:
                 raise InputError(f"{self.where}: {key} must be 3 numbers, got {value!r}")
             return tuple(float(v) for v in value)
         if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
-            raise InputError(
-                f"{self.where}: {key} must be a {getattr(kind, '__name__', kind)}, got {value!r}"
+            name = {float: "number", int: "whole number", str: "string", dict: "table"}.get(
+                kind, getattr(kind, "__name__", kind)
             )
+            raise InputError(f"{self.where}: {key} must be a {name}, got {value!r}")
         return value
 
     def table(self, key: str) -> _Table:
@@ -197,6 +198,39 @@ class _Table:
         unknown = set(self.data) - self.used
         if unknown:
             raise InputError(f"{self.where}: unknown key(s) {', '.join(sorted(unknown))}")
+
+
+def _params(t: _Table, keys: dict) -> dict:
+    """An object's or a path's keys, each of its kind and range (OBJECT_KEYS); unknown keys
+    refused."""
+    params = {}
+    for key, kind in keys.items():
+        if key not in t.data:
+            continue
+        if kind in ("positive", "count"):
+            value = t.get(key, float if kind == "positive" else int)
+            params[key] = _positive(t.where, key, value)
+        elif kind == "zero+":
+            params[key] = _at_least_zero(t.where, key, t.get(key, float))
+        elif kind in ("size2", "size3"):
+            n = int(kind[-1])
+            value = t.get(key, list)
+            if len(value) != n or not all(
+                isinstance(v, int | float) and not isinstance(v, bool) and v > 0 for v in value
+            ):
+                raise InputError(f"{t.where}: {key} must be {n} positive numbers, got {value!r}")
+            params[key] = [float(v) for v in value]
+        else:
+            value = t.get(key, kind)
+            params[key] = list(value) if kind == "vec3" else value
+    t.done()
+    return params
+
+
+def _at_least_zero(where: str, key: str, value: float) -> float:
+    if not value >= 0:
+        raise InputError(f"{where}: {key} must be 0 or more, got {value}")
+    return value
 
 
 def _positive(where: str, key: str, value: float) -> float:
@@ -214,8 +248,8 @@ def _resolve(base: Path, value: str, what: str) -> Path:
 
 def _camera(t: _Table, base: Path) -> CameraSpec:
     calibration = t.get("calibration", str)
-    width = t.get("width", int, 346)
-    height = t.get("height", int, 260)
+    width = _positive(t.where, "width", t.get("width", int, 346))
+    height = _positive(t.where, "height", t.get("height", int, 260))
     if calibration is not None:
         from evcap.sim.camera import load_calibration
 
@@ -249,11 +283,26 @@ def _camera(t: _Table, base: Path) -> CameraSpec:
     return spec
 
 
+def _procedural(t: _Table) -> None:
+    if t.get("kind", str, required=True) not in ("checker", "stripes", "noise"):
+        raise InputError(f"{t.where}: kind must be checker, stripes or noise")
+    _positive(t.where, "scale", t.get("scale", float, 8.0))
+    colors = t.get("colors", list, [[0.9, 0.9, 0.9], [0.1, 0.1, 0.1]])
+    if len(colors) < 2 or not all(
+        isinstance(c, list)
+        and len(c) == 3
+        and all(isinstance(v, int | float) and not isinstance(v, bool) and 0 <= v <= 1 for v in c)
+        for c in colors
+    ):
+        raise InputError(f"{t.where}: colors must be 2 or more [r, g, b] in 0..1, got {colors!r}")
+    t.done()
+
+
 def _material(name: str, t: _Table, base: Path) -> Material:
     texture = t.get("texture", str)
     procedural = t.get("procedural", dict)
-    if procedural is not None and procedural.get("kind") not in ("checker", "stripes", "noise"):
-        raise InputError(f"{t.where}: procedural.kind must be checker, stripes or noise")
+    if procedural is not None:
+        _procedural(_Table(procedural, f"{t.where} procedural"))
     m = Material(
         base_color=t.get("base_color", "vec3", (0.7, 0.7, 0.7)),
         roughness=t.get("roughness", float, 0.5),
@@ -268,7 +317,49 @@ def _material(name: str, t: _Table, base: Path) -> Material:
     return m
 
 
-OBJECT_KINDS = ("sphere", "box", "plane", "mesh", "charuco")
+# each object type's keys: "vec3" 3 numbers, "size2" / "size3" 2 / 3 positive numbers,
+# "positive" a number > 0, "count" an integer >= 1, "zero+" a number >= 0
+_PLACED = {"center": "vec3", "rotation_deg": "vec3"}
+OBJECT_KEYS = {
+    "sphere": {**_PLACED, "radius": "positive", "segments": "count", "rings": "count"},
+    "box": {**_PLACED, "size": "size3", "subdivisions": "count"},
+    "plane": {**_PLACED, "size": "size2", "subdivisions": "count"},
+    "mesh": {**_PLACED, "path": str, "scale": "positive", "center_and_fit": bool},
+    "charuco": {
+        **_PLACED,
+        "squares_x": "count",
+        "squares_y": "count",
+        "square_length": "positive",
+        "marker_length": "positive",
+        "dictionary": str,
+        "margin": float,
+        "subdivisions": "count",
+    },
+}
+OBJECT_KINDS = tuple(OBJECT_KEYS)
+_AIMED = {"look_at": "vec3"}
+TRAJECTORY_KEYS = {
+    "orbit": {
+        **_AIMED,
+        "center": "vec3",
+        "radius": "positive",
+        "height": float,
+        "height_swing": float,
+        "swings": "zero+",
+        "start_deg": float,
+        "degrees": float,
+    },
+    "handheld": {
+        **_AIMED,
+        "start": "vec3",
+        "end": "vec3",
+        "shake_units": "zero+",
+        "shake_deg": "zero+",
+        "shake_hz": "positive",
+    },
+    "linear": {**_AIMED, "start": "vec3", "end": "vec3"},
+    "static": {**_AIMED, "position": "vec3"},
+}
 
 
 def _environment(t: _Table, base: Path, sky: dict | None = None) -> dict:
@@ -279,7 +370,7 @@ def _environment(t: _Table, base: Path, sky: dict | None = None) -> dict:
     return {
         "environment": env,
         "sky": t.get("sky", dict, {} if sky is None else sky),
-        "intensity": t.get("intensity", float, 1.0),
+        "intensity": _at_least_zero(t.where, "intensity", t.get("intensity", float, 1.0)),
         "rotation_deg": t.get("rotation_deg", float, 0.0),
     }
 
@@ -320,7 +411,10 @@ def load_scene(path: str | os.PathLike) -> Scene:
             if material != "default":
                 raise InputError(f"{where}: unknown material {material!r}")
             materials.setdefault("default", Material())
-        params = {k: v for k, v in value.items() if k not in ("type", "material")}
+        params = _params(
+            _Table({k: v for k, v in value.items() if k not in ("type", "material")}, where),
+            OBJECT_KEYS[kind],
+        )
         if kind == "mesh":
             if "path" not in params:
                 raise InputError(f"{where}: a mesh needs path")
@@ -335,7 +429,7 @@ def load_scene(path: str | os.PathLike) -> Scene:
         points=tuple(light.get("points", list, [])),
         shadows=light.get("shadows", bool, False),
         indirect=light.get("indirect", bool, False),
-        samples=light.get("samples", int, 256),
+        samples=_positive(light.where, "samples", light.get("samples", int, 256)),
     )
     light.done()
 
@@ -350,9 +444,12 @@ def load_scene(path: str | os.PathLike) -> Scene:
             )
         et = _Table(params if isinstance(params, dict) else {}, f"{sensor_t.where} effects.{name}")
         effects[name] = {
-            key: et.get(key, kind, required=True) for key, kind in EFFECTS[name].items()
+            key: _at_least_zero(et.where, key, et.get(key, kind, required=True))
+            for key, kind in EFFECTS[name].items()
         }
         et.done()
+        if effects[name].get("probability", 0) > 1:
+            raise InputError(f"{et.where}: probability must be in 0..1")
     sensor = SensorSpec(
         color_filter=check_color_filter(sensor_t.get("color_filter", str, "RGBG")),
         threshold_on=_positive(
@@ -374,9 +471,10 @@ def load_scene(path: str | os.PathLike) -> Scene:
     if kind not in ("orbit", "handheld", "linear", "static"):
         raise InputError(f"{traj.where}: kind must be orbit, handheld, linear or static")
     duration = _positive(traj.where, "duration_s", traj.get("duration_s", float, 2.0))
+    rest = {k: v for k, v in traj.data.items() if k not in ("kind", "duration_s")}
     traj.used.update(traj.data)
     trajectory = TrajectorySpec(
-        kind, duration, {k: v for k, v in traj.data.items() if k not in ("kind", "duration_s")}
+        kind, duration, _params(_Table(rest, traj.where), TRAJECTORY_KEYS[kind])
     )
 
     aps = None
@@ -384,9 +482,9 @@ def load_scene(path: str | os.PathLike) -> Scene:
         a = top.table("aps")
         aps = ApsSpec(
             fps=_positive(a.where, "fps", a.get("fps", float, 25.0)),
-            exposure_us=a.get("exposure_us", int, 4000),
-            gain=a.get("gain", float, 200.0),
-            read_noise=a.get("read_noise", float, 2.0),
+            exposure_us=_positive(a.where, "exposure_us", a.get("exposure_us", int, 4000)),
+            gain=_positive(a.where, "gain", a.get("gain", float, 200.0)),
+            read_noise=_at_least_zero(a.where, "read_noise", a.get("read_noise", float, 2.0)),
             shot_noise=a.get("shot_noise", bool, True),
         )
         a.done()
@@ -395,15 +493,15 @@ def load_scene(path: str | os.PathLike) -> Scene:
         i = top.table("imu")
         imu = ImuSpec(
             rate_hz=_positive(i.where, "rate_hz", i.get("rate_hz", float, 1000.0)),
-            gyro_noise=i.get("gyro_noise", float, 0.0),
-            accel_noise=i.get("accel_noise", float, 0.0),
+            gyro_noise=_at_least_zero(i.where, "gyro_noise", i.get("gyro_noise", float, 0.0)),
+            accel_noise=_at_least_zero(i.where, "accel_noise", i.get("accel_noise", float, 0.0)),
         )
         i.done()
     g = top.table("gt")
     relight = _relight(_Table(g.get("relight", dict, {}), f"{g.where}.relight"), base, lighting)
     gt = GroundTruthSpec(
         fps=_positive(g.where, "fps", g.get("fps", float, 20.0)),
-        test_views=g.get("test_views", int, 8),
+        test_views=_at_least_zero(g.where, "test_views", g.get("test_views", int, 8)),
         relight=relight,
     )
     g.done()
@@ -423,8 +521,8 @@ def load_scene(path: str | os.PathLike) -> Scene:
         aps=aps,
         imu=imu,
         gt=gt,
-        max_step_px=scene.get("max_step_px", float, 0.5),
-        max_step_log=scene.get("max_step_log", float, 0.25),
+        max_step_px=_positive(scene.where, "max_step_px", scene.get("max_step_px", float, 0.5)),
+        max_step_log=_positive(scene.where, "max_step_log", scene.get("max_step_log", float, 0.25)),
     )
     scene.done()
     top.used.update(

@@ -48,26 +48,6 @@ class Trajectory:
         self.duration_s = spec.duration_s
         p = spec.params
         self.kind = spec.kind
-        known = {
-            "orbit": {
-                "center",
-                "radius",
-                "height",
-                "height_swing",
-                "swings",
-                "start_deg",
-                "degrees",
-                "look_at",
-            },
-            "handheld": {"start", "end", "look_at", "shake_units", "shake_deg", "shake_hz"},
-            "linear": {"start", "end", "look_at"},
-            "static": {"position", "look_at"},
-        }[spec.kind]
-        unknown = set(p) - known
-        if unknown:
-            raise InputError(
-                f"trajectory ({spec.kind}): unknown key(s) {', '.join(sorted(unknown))}"
-            )
         if spec.kind == "orbit":
             self.center = _vec(p, "center", [0, 0, 0])
             self.radius = float(p.get("radius", 2.0))
