@@ -18,21 +18,20 @@ from pathlib import Path
 
 from evcap.acquire import protocol as P
 from evcap.errors import InputError
-from evcap.toml_file import read_toml
+from evcap.toml_file import Table, read_toml
 
 
 def load_bias_file(path: str | Path) -> tuple[dict[str, int], P.Settings]:
     """(bias codes for every bias, settings), the file's values over the vendor defaults."""
-    doc = read_toml(path, "biases")
-    unknown = set(doc) - {"biases", "settings"}
+    doc = Table(read_toml(path, "biases"), str(path))
+    biases, settings = doc.get("biases", dict, {}), doc.get("settings", dict, {})
+    unknown = set(doc.data) - doc.used
     if unknown:
         raise InputError(
             f"{path}: unknown table(s) {', '.join(sorted(unknown))}; "
             "expected [biases] and [settings]"
         )
-    return bias_codes(doc.get("biases", {}), str(path)), settings_from(
-        doc.get("settings", {}), str(path)
-    )
+    return bias_codes(biases, str(path)), settings_from(settings, str(path))
 
 
 def bias_codes(values: dict, where: str = "biases") -> dict[str, int]:

@@ -28,6 +28,7 @@ from evcap.errors import (
     InputError,
 )
 
+MAX_SENSOR_SIDE = 1024  # pixels: the largest DAVIS (DAVIS640) is 640 x 480
 UDEV_RULE = (
     "# iniVation cameras (DAVIS346): allow users of the plugdev group, and the logged-in user\n"
     'SUBSYSTEM=="usb", ATTR{idVendor}=="152a", ATTR{idProduct}=="84[0-1]?", '
@@ -309,6 +310,16 @@ class Davis346:
             imu_flip=(bool(imu_o & 4), bool(imu_o & 2), bool(imu_o & 1)),
             color_filter=color_filter,
         )
+        for what, size, least in (
+            ("DVS", (geometry.dvs_columns, geometry.dvs_rows), 1),
+            ("APS", (geometry.aps_columns, geometry.aps_rows), 0),
+        ):
+            if not all(least <= n <= MAX_SENSOR_SIDE for n in size):
+                raise DeviceError(
+                    f"the camera reports a {what} array of {size[0]} x {size[1]} pixels, which "
+                    "no DAVIS has: unplug it and plug it in again; if it persists, its logic "
+                    "needs reflashing (iniVation's flashy)"
+                )
         capabilities = {name: self._reg(addr) for name, addr in P.DEVICE_CAPABILITIES.items()}
         capabilities["mux_statistics"] = self._reg(P.MUX_HAS_STATISTICS)
         capabilities["dvs_statistics"] = self._reg(P.DVS_HAS_STATISTICS)

@@ -24,7 +24,6 @@ import errno
 import mmap
 import threading
 import time
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
@@ -36,6 +35,7 @@ import usb.core
 from evcap.acquire import protocol as P
 from evcap.acquire.decoder import MAX_WRAPS_PER_WORD
 from evcap.errors import InputError
+from evcap.toml_file import Table, read_toml
 
 DEFAULT_TRANSFER = 8192
 RELEASE_BYTES = 16 << 20  # served pages of bulk.bin are given back in steps this big (page-aligned)
@@ -69,20 +69,24 @@ class Fixture:
         path = Path(path)
         if not (path / "device.toml").is_file() or not (path / "bulk.bin").is_file():
             raise InputError(f"{path} is not a replay fixture (needs device.toml and bulk.bin)")
-        try:
-            device = tomllib.loads((path / "device.toml").read_text())
-        except tomllib.TOMLDecodeError as e:
-            raise InputError(f"{path / 'device.toml'}: {e}") from None
-        usb_desc = device.get("usb", {})
-        for key in ("idVendor", "idProduct", "bcdDevice", "serial", "product"):
-            if key not in usb_desc:
-                raise InputError(f"{path / 'device.toml'}: [usb] needs {key}")
+        where = path / "device.toml"
+        device = Table(read_toml(where, "fixture device"), str(where))
+        usb_t = device.table("usb")
+        usb_desc = {k: usb_t.get(k, int, required=True) for k in ("idVendor", "idProduct")}
+        usb_desc["bcdDevice"] = usb_t.get("bcdDevice", int, required=True)
+        usb_desc |= {k: usb_t.get(k, str, required=True) for k in ("serial", "product")}
+        usb_t.done()
         registers = {}
-        for key, value in device.get("registers", {}).items():
+        for key, value in device.get("registers", dict, {}).items():
             module, _, param = key.partition(".")
-            if not (module.isdigit() and param.isdigit()) or not isinstance(value, int):
-                raise InputError(f"{path / 'device.toml'}: bad register {key!r} = {value!r}")
+            if (
+                not (module.isdigit() and param.isdigit())
+                or not isinstance(value, int)
+                or not 0 <= value < 2**32
+            ):
+                raise InputError(f"{where}: bad register {key!r} = {value!r}")
             registers[(int(module), int(param))] = value
+        device.done()
         transfers = np.zeros(0, np.uint32)
         if (path / "transfers.u32").is_file():
             transfers = np.fromfile(path / "transfers.u32", dtype="<u4")
@@ -90,12 +94,19 @@ class Fixture:
                 raise InputError(f"{path / 'transfers.u32'}: transfer sizes must be positive")
         faults = []
         if (path / "faults.toml").is_file():
-            for f in tomllib.loads((path / "faults.toml").read_text()).get("fault", []):
-                if f.get("kind") not in ("disconnect", "timeout", "stall"):
-                    raise InputError(
-                        f"{path / 'faults.toml'}: unknown fault kind {f.get('kind')!r}"
-                    )
-                faults.append(Fault(int(f["at_byte"]), f["kind"], int(f.get("count", 1))))
+            where = path / "faults.toml"
+            doc = Table(read_toml(where, "fixture faults"), str(where))
+            for i, f in enumerate(doc.get("fault", list, [])):
+                t = Table(f if isinstance(f, dict) else {}, f"{where} [[fault]] #{i + 1}")
+                kind = t.get("kind", str, required=True)
+                if kind not in ("disconnect", "timeout", "stall"):
+                    raise InputError(f"{t.where}: unknown fault kind {kind!r}")
+                at_byte, count = t.get("at_byte", int, required=True), t.get("count", int, 1)
+                if at_byte < 0 or count < 1:
+                    raise InputError(f"{t.where}: at_byte must be 0 or more and count 1 or more")
+                t.done()
+                faults.append(Fault(at_byte, kind, count))
+            doc.done()
         faults.sort(key=lambda f: f.at_byte)
         return cls(path, usb_desc, registers, _map(path / "bulk.bin"), transfers, faults)
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from evcap.errors import InputError, InputNotFoundError
 from evcap.events import check_color_filter
-from evcap.toml_file import read_toml
+from evcap.toml_file import Table, read_toml
 
 CALIBRATIONS = (
     Path(os.environ.get("EVCAP_SHARED", Path(__file__).resolve().parents[2] / "shared"))
@@ -160,47 +160,7 @@ class Scene:
     max_step_log: float = 0.25  # ...and largest log-radiance change, in thresholds
 
 
-class _Table:
-    """A TOML table being read: typed look-ups whose errors name the file and the key."""
-
-    def __init__(self, data: dict, where: str) -> None:
-        self.data, self.where, self.used = data, where, set()
-
-    def get(self, key: str, kind, default=None, required: bool = False):
-        self.used.add(key)
-        if key not in self.data:
-            if required:
-                raise InputError(f"{self.where}: missing {key}")
-            return default
-        value = self.data[key]
-        if kind is float and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
-        if kind == "vec3":
-            if (
-                not isinstance(value, list)
-                or len(value) != 3
-                or not all(isinstance(v, int | float) for v in value)
-            ):
-                raise InputError(f"{self.where}: {key} must be 3 numbers, got {value!r}")
-            return tuple(float(v) for v in value)
-        if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
-            name = {float: "number", int: "whole number", str: "string", dict: "table"}.get(
-                kind, getattr(kind, "__name__", kind)
-            )
-            raise InputError(f"{self.where}: {key} must be a {name}, got {value!r}")
-        return value
-
-    def table(self, key: str) -> _Table:
-        value = self.get(key, dict, {})
-        return _Table(value, f"{self.where} [{key}]")
-
-    def done(self) -> None:
-        unknown = set(self.data) - self.used
-        if unknown:
-            raise InputError(f"{self.where}: unknown key(s) {', '.join(sorted(unknown))}")
-
-
-def _params(t: _Table, keys: dict) -> dict:
+def _params(t: Table, keys: dict) -> dict:
     """An object's or a path's keys, each of its kind and range (OBJECT_KEYS); unknown keys
     refused."""
     params = {}
@@ -246,7 +206,7 @@ def _resolve(base: Path, value: str, what: str) -> Path:
     return path
 
 
-def _camera(t: _Table, base: Path) -> CameraSpec:
+def _camera(t: Table, base: Path) -> CameraSpec:
     calibration = t.get("calibration", str)
     width = _positive(t.where, "width", t.get("width", int, 346))
     height = _positive(t.where, "height", t.get("height", int, 260))
@@ -283,7 +243,7 @@ def _camera(t: _Table, base: Path) -> CameraSpec:
     return spec
 
 
-def _procedural(t: _Table) -> None:
+def _procedural(t: Table) -> None:
     if t.get("kind", str, required=True) not in ("checker", "stripes", "noise"):
         raise InputError(f"{t.where}: kind must be checker, stripes or noise")
     _positive(t.where, "scale", t.get("scale", float, 8.0))
@@ -298,11 +258,11 @@ def _procedural(t: _Table) -> None:
     t.done()
 
 
-def _material(name: str, t: _Table, base: Path) -> Material:
+def _material(name: str, t: Table, base: Path) -> Material:
     texture = t.get("texture", str)
     procedural = t.get("procedural", dict)
     if procedural is not None:
-        _procedural(_Table(procedural, f"{t.where} procedural"))
+        _procedural(Table(procedural, f"{t.where} procedural"))
     m = Material(
         base_color=t.get("base_color", "vec3", (0.7, 0.7, 0.7)),
         roughness=t.get("roughness", float, 0.5),
@@ -362,7 +322,7 @@ TRAJECTORY_KEYS = {
 }
 
 
-def _environment(t: _Table, base: Path, sky: dict | None = None) -> dict:
+def _environment(t: Table, base: Path, sky: dict | None = None) -> dict:
     """A [lighting] table's environment keys."""
     env = t.get("environment", str, "sky")
     if env != "sky":
@@ -375,7 +335,7 @@ def _environment(t: _Table, base: Path, sky: dict | None = None) -> dict:
     }
 
 
-def _relight(t: _Table, base: Path, lighting: Lighting) -> Lighting:
+def _relight(t: Table, base: Path, lighting: Lighting) -> Lighting:
     """[gt] relight: the second environment, with the scene's shadows and bounce."""
     env = _environment(t, base, RELIGHT_SKY)
     t.done()
@@ -392,10 +352,10 @@ def load_scene(path: str | os.PathLike) -> Scene:
     path = Path(path)
     doc = read_toml(path, "scene")
     base = path.parent
-    top = _Table(doc, str(path))
+    top = Table(doc, str(path))
     scene = top.table("scene")
     materials = {
-        name: _material(name, _Table(value, f"{path} [materials.{name}]"), base)
+        name: _material(name, Table(value, f"{path} [materials.{name}]"), base)
         for name, value in top.get("materials", dict, {}).items()
     }
     objects = []
@@ -412,7 +372,7 @@ def load_scene(path: str | os.PathLike) -> Scene:
                 raise InputError(f"{where}: unknown material {material!r}")
             materials.setdefault("default", Material())
         params = _params(
-            _Table({k: v for k, v in value.items() if k not in ("type", "material")}, where),
+            Table({k: v for k, v in value.items() if k not in ("type", "material")}, where),
             OBJECT_KEYS[kind],
         )
         if kind == "mesh":
@@ -442,7 +402,7 @@ def load_scene(path: str | os.PathLike) -> Scene:
             raise InputError(
                 f"{sensor_t.where}: unknown effect {name!r}; known: {', '.join(EFFECTS)}"
             )
-        et = _Table(params if isinstance(params, dict) else {}, f"{sensor_t.where} effects.{name}")
+        et = Table(params if isinstance(params, dict) else {}, f"{sensor_t.where} effects.{name}")
         effects[name] = {
             key: _at_least_zero(et.where, key, et.get(key, kind, required=True))
             for key, kind in EFFECTS[name].items()
@@ -474,7 +434,7 @@ def load_scene(path: str | os.PathLike) -> Scene:
     rest = {k: v for k, v in traj.data.items() if k not in ("kind", "duration_s")}
     traj.used.update(traj.data)
     trajectory = TrajectorySpec(
-        kind, duration, _params(_Table(rest, traj.where), TRAJECTORY_KEYS[kind])
+        kind, duration, _params(Table(rest, traj.where), TRAJECTORY_KEYS[kind])
     )
 
     aps = None
@@ -498,7 +458,7 @@ def load_scene(path: str | os.PathLike) -> Scene:
         )
         i.done()
     g = top.table("gt")
-    relight = _relight(_Table(g.get("relight", dict, {}), f"{g.where}.relight"), base, lighting)
+    relight = _relight(Table(g.get("relight", dict, {}), f"{g.where}.relight"), base, lighting)
     gt = GroundTruthSpec(
         fps=_positive(g.where, "fps", g.get("fps", float, 20.0)),
         test_views=_at_least_zero(g.where, "test_views", g.get("test_views", int, 8)),

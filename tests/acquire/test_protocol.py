@@ -107,6 +107,8 @@ def test_bias_file(tmp_path):
         ("[settings]\naps_exposure_us = 5000000\n", "aps_exposure_us = 5000000 is outside"),
         ("[settings]\nimu_gyro_full_scale = 4\n", "imu_gyro_full_scale = 4 is outside 0..3"),
         ("[bias]\n", "unknown table"),
+        ("biases = 5\n", "biases must be a table, got 5"),
+        ("settings = [1]\n", "settings must be a table"),
         ("not toml [", "not valid TOML"),
     ],
 )

@@ -346,6 +346,17 @@ def test_wrong_firmware_and_logic(fixture_copy):
     assert r.returncode == 1 and "logic is version 17" in r.stderr
 
 
+@pytest.mark.parametrize(
+    "register, size", [('"2.0" = 60000', "APS array of 60000 x"), ('"1.0" = 0', "DVS array of 0 x")]
+)
+def test_a_sensor_size_no_davis_has_is_the_cameras_fault(fixture_copy, tmp_path, register, size):
+    path = fixture_copy("color-scene")
+    (path / "device.toml").write_text((path / "device.toml").read_text() + register + "\n")
+    r = evcap("record", "--device", f"replay:{path}", "-o", str(tmp_path / "s.h5"), "--no-tui")
+    assert r.returncode == 1 and size in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert not (tmp_path / "s.h5").exists()
+
+
 def test_no_permission_says_how_to_fix_it(monkeypatch):
     from evcap.acquire.replay import ReplayBackend
 

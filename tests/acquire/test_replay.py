@@ -93,23 +93,33 @@ def test_faults_play_at_their_byte(fixture_copy):
     assert usb.core.find(idVendor=0x152A, backend=backend) is None  # gone from the bus
 
 
+USB = "[usb]\nidVendor = 1\nidProduct = 2\nbcdDevice = 6\n"
+
+
 @pytest.mark.parametrize(
     "files, message",
     [
         ({}, "not a replay fixture"),
-        ({"device.toml": "[usb]\nidVendor = 1\n", "bulk.bin": ""}, "needs idProduct"),
-        ({"device.toml": "[usb", "bulk.bin": ""}, "device.toml"),
+        ({"device.toml": "[usb]\nidVendor = 1\n", "bulk.bin": ""}, "missing idProduct"),
+        ({"device.toml": "[usb", "bulk.bin": ""}, "device.toml is not valid TOML"),
+        ({"device.toml": b"[usb]\nserial = '\xff'\n", "bulk.bin": ""}, "not valid TOML"),
+        ({"device.toml": USB + 'serial = 42\nproduct = "x"\n'}, "serial must be a string"),
         ({"faults.toml": '[[fault]]\nat_byte = 1\nkind = "fire"\n'}, "unknown fault kind"),
+        ({"faults.toml": '[[fault]]\nkind = "stall"\n'}, "missing at_byte"),
+        ({"faults.toml": '[[fault]]\nat_byte = "ten"\nkind = "stall"\n'}, "at_byte must be"),
+        ({"faults.toml": '[[fault]]\nat_byte = 9\nkind = "timeout"\ncount = -1\n'}, "count"),
+        ({"faults.toml": '[[fault]]\nat_byte = 9\nkind = "stall"\nwhen = 2\n'}, "unknown key"),
+        ({"faults.toml": "[[fault]"}, "faults.toml is not valid TOML"),
     ],
 )
 def test_bad_fixtures_are_refused(tmp_path, files, message):
-    if "faults.toml" in files:
+    if files:  # a good fixture's other files
         files = {
             "device.toml": (FIXTURES / "color-scene" / "device.toml").read_text(),
             "bulk.bin": "",
             **files,
         }
     for name, text in files.items():
-        (tmp_path / name).write_text(text)
+        (tmp_path / name).write_bytes(text if isinstance(text, bytes) else text.encode())
     with pytest.raises(InputError, match=message):
         ReplayBackend(tmp_path)
