@@ -12,6 +12,8 @@ import json
 import math
 import re
 import tomllib
+import zipfile
+import zlib
 from datetime import datetime
 from html import escape
 from pathlib import Path
@@ -542,22 +544,33 @@ def _maps_section(out: Path, s: Session) -> str:
     from evcap.recon.evaluate import test_views
 
     _, truth = test_views(s)
-    stages = []
+    stages, unreadable = [], []
     for label, folder in (
         ("stage I: radiance field", out / "renders"),
         ("stage II: material, shaded", out / "renders" / "material"),
     ):
         for name in ("test", "path"):
-            if (folder / f"{name}.npz").exists():
-                stages.append((label, name, dict(np.load(folder / f"{name}.npz"))))
+            path = folder / f"{name}.npz"
+            if path.exists():
+                try:
+                    stages.append((label, name, dict(np.load(path))))
+                except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+                    unreadable.append(
+                        _missing(f"{path.relative_to(out)} is not readable ({e}); run again.")
+                    )
                 break
+    notes = "".join(unreadable)
     if not stages:
         pngs = sorted((out / "renders").rglob("*.png")) if (out / "renders").is_dir() else []
         pngs = [p for p in pngs if "relit" not in p.parts]
         if not pngs:
-            return _missing("There are no rendered views (renders/ is missing or empty).")
+            return notes + _missing("There are no rendered views (renders/ is missing or empty).")
         figures = [_figure(file_data_uri(p), escape(p.name), VIEW_PX) for p in pngs[:24]]
-        return _missing("No renders/*.npz: the PNGs as they were written.") + "".join(figures)
+        return (
+            notes
+            + _missing("No readable renders/*.npz: the PNGs as they were written.")
+            + ("".join(figures))
+        )
     kind = stages[0][1]
     intro = (
         "Held-out test views beside the session's truth."
@@ -572,7 +585,7 @@ def _maps_section(out: Path, s: Session) -> str:
         )
     count = min([MAX_VIEWS, *(len(v["radiance"]) for _, _, v in stages if "radiance" in v)])
     tables = [_view_table(i, stages, truth) for i in range(count)]
-    return f"<p>{escape(intro)} ({kind} views; {count} shown)</p>" + "".join(tables)
+    return notes + f"<p>{escape(intro)} ({kind} views; {count} shown)</p>" + "".join(tables)
 
 
 MAP_COLUMNS = (

@@ -243,6 +243,14 @@ def test_sections_without_data_say_so(session, tmp_path):
     assert "No stage-I training log" in text
 
 
+def test_a_corrupt_renders_file_is_named_and_the_page_kept(session, tmp_path):
+    out = make_reconstruction(tmp_path / "out", session)
+    (out / "renders" / "test.npz").write_bytes(b"PK\x03\x04 not a zip at all")
+    text = write_report(out).read_text()
+    assert "renders/test.npz is not readable" in text
+    assert "stage II: material, shaded" in text  # the other stage's views still shown
+
+
 def test_session_given_explicitly(session, tmp_path):
     out = tmp_path / "out"
     out.mkdir()
