@@ -18,7 +18,7 @@ from evcap.errors import InputError
 from evcap.recon.optics import SensorOptics
 from evcap.session import Session
 
-MIN_EVENTS = 1000  # fewer than this say nothing of a scene: refused before minutes of fitting
+MIN_EVENTS = 500  # fewer than this say nothing of a scene: refused before minutes of fitting
 
 
 @dataclass

@@ -259,7 +259,7 @@ def test_too_few_events_are_refused_at_once(color_session, tmp_path, n):
         timeout=120,
     )
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
-    assert ("no events" if n == 0 else "needs at least 1,000") in r.stderr, r.stderr
+    assert ("no events" if n == 0 else "needs at least 500") in r.stderr, r.stderr
     assert not (tmp_path / "o").exists()
 
 

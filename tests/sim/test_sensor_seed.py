@@ -45,5 +45,5 @@ def test_without_it_the_sensor_comes_from_the_scene_seed(tiny_scene):
 
 
 def test_a_sensor_seed_must_be_an_integer(tiny_scene):
-    with pytest.raises(InputError, match="seed must be a int"):
+    with pytest.raises(InputError, match="seed must be a whole number"):
         load_scene(tiny_scene(effects='seed = "a"'))
