@@ -17,7 +17,7 @@ from evcap.calib.intrinsics import IntrinsicsResult, calibrate_intrinsics
 from evcap.calib.noise import NoiseStats, measure_noise
 from evcap.calib.thresholds import DATASHEET_THRESHOLDS, ThresholdFit, fit_thresholds
 from evcap.errors import CalibrationError, InputError
-from evcap.session import Session, stored_distortion, write_group
+from evcap.session import Session, read_intrinsics, write_group
 
 SKIPPABLE = ("intrinsics", "thresholds")  # the noise is always measured: it finds the hot pixels
 # Frames of the board made from the events when the recording has no APS frames: rate and
@@ -319,9 +319,7 @@ def _stored(s: Session) -> dict:
     g = s.group("calibration")
     out = {}
     if "K" in g:
-        out["K"] = g["K"][()]
-        out["dist"] = stored_distortion(g)
-        out["model"] = str(g.attrs.get("distortion_model", "none"))
+        out["K"], out["model"], out["dist"] = read_intrinsics(s)
         out["intrinsics_source"] = f"kept ({g.attrs.get('source', 'unknown')})"
     if "threshold_on" in g and "threshold_off" in g:
         out["threshold_on"] = g["threshold_on"][()]

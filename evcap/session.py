@@ -30,6 +30,7 @@ import numpy as np
 
 from evcap import __version__
 from evcap.errors import (
+    InputError,
     InputNotFoundError,
     OutputExistsError,
     SessionFormatError,
@@ -475,6 +476,37 @@ def stored_distortion(calibration: h5py.Group) -> np.ndarray:
         if name in calibration:
             return np.asarray(calibration[name][()], np.float64)
     return np.zeros(0)
+
+
+DISTORTION_MODELS = ("none", "radtan", "equidistant")
+
+
+def read_intrinsics(session: Session) -> tuple[np.ndarray, str, np.ndarray]:
+    """(K, distortion model, coefficients) of the session's /calibration, checked: the one
+    reader of the intrinsics, so that every step refuses a bad group with the same message."""
+    where = f"{session.path}: /calibration"
+    if "calibration" not in session.groups or "K" not in session.group("calibration"):
+        raise InputError(
+            f"{session.path} has no intrinsics (/calibration/K): run `evcap calibrate` on it, "
+            "or `evcap calibrate --apply-to` from a calibration recording of the same camera"
+        )
+    g = session.group("calibration")
+    try:
+        K = np.asarray(g["K"][()], np.float64)
+        dist = stored_distortion(g)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"{where} holds values that are not numbers ({e})") from None
+    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise InputError(
+            f"{where}/K is not an intrinsic matrix (3 x 3, finite, positive focal lengths): "
+            f"shape {list(K.shape)}; run `evcap calibrate` again"
+        )
+    model = str(g.attrs.get("distortion_model", "none"))
+    if model not in DISTORTION_MODELS:
+        raise InputError(f"{where}: unknown distortion model {model!r}")
+    if dist.ndim != 1 or not np.isfinite(dist).all():
+        raise InputError(f"{where}: the distortion is not a finite list of coefficients")
+    return K, model, dist
 
 
 def write_group(

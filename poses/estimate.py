@@ -19,7 +19,7 @@ from evcap.poses.gyro import GyroFit, fit_gyro
 from evcap.poses.refine import Refined, refine_positions
 from evcap.poses.sfm import SfmResult, run_sfm
 from evcap.poses.track import PoseTrack
-from evcap.session import Session, stored_distortion, write_group
+from evcap.session import Session, read_intrinsics, write_group
 from evcap.streams import Frames, ImuSamples
 
 MIN_EVENTS = 10_000
@@ -104,16 +104,10 @@ def estimate_poses(
     them (`aps_frames_usable`). ``threads``: structure from motion's (see run_sfm)."""
 
     with Session.open(path) as s:
-        if "calibration" not in s.groups or "K" not in s.group("calibration"):
-            raise InputError(
-                f"{path} has no intrinsics (/calibration/K): run `evcap calibrate` on it, or "
-                "`evcap calibrate --apply-to` from a calibration recording of the same camera"
-            )
-        g = s.group("calibration")
-        K = g["K"][()]
-        dist = stored_distortion(g)
-        if str(g.attrs.get("distortion_model", "none")) not in ("none", "radtan"):
+        K, model, dist = read_intrinsics(s)
+        if model not in ("none", "radtan"):
             raise InputError(f"{path}: structure from motion takes radtan distortion only")
+        g = s.group("calibration")
         on = g["threshold_on"][()] if "threshold_on" in g else 0.2
         off = g["threshold_off"][()] if "threshold_off" in g else 0.2
         hot = g["hot_pixels"][()].astype(bool) if "hot_pixels" in g else None

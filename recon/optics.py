@@ -17,7 +17,7 @@ import torch.nn.functional as F
 
 from evcap.errors import InputError
 from evcap.events import Channel, pixel_channels
-from evcap.session import Session, stored_distortion
+from evcap.session import Session, read_intrinsics
 
 # what each channel sees of the rendered (R, G, B): a Bayer pixel one of them, MONO luminance
 CHANNEL_WEIGHTS = torch.tensor(
@@ -52,16 +52,10 @@ class SensorOptics:
                 f"{session.path}: the calibration is for {w} x {h}, the sensor is "
                 f"{s.width} x {s.height}"
             )
-        K = np.asarray(g["K"][:], np.float64)
+        K, model, dist = read_intrinsics(session)
         on = _map(g, "threshold_on", h, w, session)
         off = _map(g, "threshold_off", h, w, session)
         hot = g["hot_pixels"][:].astype(bool) if "hot_pixels" in g else np.zeros((h, w), bool)
-        if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise InputError(f"{session.path}: /calibration/K is not a valid intrinsic matrix")
-        model = str(g.attrs.get("distortion_model", "none"))
-        if model not in ("none", "radtan", "equidistant"):
-            raise InputError(f"{session.path}: unknown distortion model {model!r}")
-        dist = stored_distortion(g)
         return cls(w, h, K, model, dist, s.color_filter, on, off, hot)
 
     def undistorted(self) -> np.ndarray:

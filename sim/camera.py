@@ -74,20 +74,21 @@ def load_calibration(path: str | Path) -> CameraSpec:
 
 def _session_calibration(path: Path) -> CameraSpec:
     """The intrinsics of an evcap session's /calibration (measured by `evcap calibrate`)."""
-    from evcap.session import Session, stored_distortion
+    from evcap.session import Session, read_intrinsics
 
     with Session.open(path, validate=False) as s:
-        if "calibration" not in s.groups or "K" not in s.group("calibration"):
-            raise InputError(f"{path} has no intrinsics (/calibration/K): run evcap calibrate")
-        g = s.group("calibration")
-        K = g["K"][()]
-        dist = tuple(float(v) for v in stored_distortion(g))
-        model = str(g.attrs.get("distortion_model", "none"))
+        K, model, dist = read_intrinsics(s)
         w, h = s.sensor.width, s.sensor.height
-    if not (np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0):
-        raise InputError(f"{path}: /calibration/K is not a valid intrinsic matrix")
     return CameraSpec(
-        w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), model, dist, path.name
+        w,
+        h,
+        float(K[0, 0]),
+        float(K[1, 1]),
+        float(K[0, 2]),
+        float(K[1, 2]),
+        model,
+        tuple(float(v) for v in dist),
+        path.name,
     )
 
 
