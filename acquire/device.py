@@ -316,9 +316,9 @@ class Davis346:
         ):
             if not all(least <= n <= MAX_SENSOR_SIDE for n in size):
                 raise DeviceError(
-                    f"the camera reports a {what} array of {size[0]} x {size[1]} pixels, which "
-                    "no DAVIS has: unplug it and plug it in again; if it persists, its logic "
-                    "needs reflashing (iniVation's flashy)"
+                    f"the camera reports {size[0]} x {size[1]} pixels for its {what} array, "
+                    "which no DAVIS has: unplug it and plug it in again; if it persists, its "
+                    "logic needs reflashing (iniVation's flashy)"
                 )
         capabilities = {name: self._reg(addr) for name, addr in P.DEVICE_CAPABILITIES.items()}
         capabilities["mux_statistics"] = self._reg(P.MUX_HAS_STATISTICS)

@@ -347,7 +347,11 @@ def test_wrong_firmware_and_logic(fixture_copy):
 
 
 @pytest.mark.parametrize(
-    "register, size", [('"2.0" = 60000', "APS array of 60000 x"), ('"1.0" = 0', "DVS array of 0 x")]
+    "register, size",
+    [
+        ('"2.0" = 60000', "60000 x 260 pixels for its APS"),
+        ('"1.0" = 0', "0 x 260 pixels for its DVS"),
+    ],
 )
 def test_a_sensor_size_no_davis_has_is_the_cameras_fault(fixture_copy, tmp_path, register, size):
     path = fixture_copy("color-scene")
