@@ -1,8 +1,8 @@
 """The simulated camera: intrinsics with lens distortion, rays through pixels, projection.
 
 Axes are OpenCV's: x right, y down, z forward. Distortion models: "radtan" (plumb_bob:
-k1, k2, p1, p2[, k3]) and "equidistant" (fisheye: k1..k4), as in the real DAVIS346
-calibrations of ../shared/data/davis346-calibrations (ROS camera_info, Kalibr and VINS files).
+k1, k2, p1, p2[, k3]) and "equidistant" (fisheye: k1..k4), as real DAVIS346 calibrations
+give them (ROS camera_info, Kalibr and VINS files).
 """
 
 from __future__ import annotations

@@ -17,12 +17,6 @@ from evcap.errors import InputError, InputNotFoundError
 from evcap.events import check_color_filter
 from evcap.toml_file import Table, read_toml
 
-CALIBRATIONS = (
-    Path(os.environ.get("EVCAP_SHARED", Path(__file__).resolve().parents[2] / "shared"))
-    / "data"
-    / "davis346-calibrations"
-)
-
 
 @dataclass(frozen=True)
 class Material:
@@ -213,17 +207,7 @@ def _camera(t: Table, base: Path) -> CameraSpec:
     if calibration is not None:
         from evcap.sim.camera import load_calibration
 
-        path = Path(calibration)
-        if not path.is_absolute():
-            path = (
-                base / calibration if (base / calibration).exists() else CALIBRATIONS / calibration
-            )
-        if not path.exists():
-            raise InputNotFoundError(
-                f"{t.where}: calibration {calibration!r} not found next to the scene or in "
-                f"{CALIBRATIONS}"
-            )
-        spec = load_calibration(path)
+        spec = load_calibration(_resolve(base, calibration, f"{t.where}: calibration"))
         t.done()
         return spec
     fx = _positive(t.where, "fx", t.get("fx", float, 250.0))

@@ -15,6 +15,15 @@ SAMPLE_AEDAT4 = SHARED / "data" / "davis346-sample" / "davis346_test_data.aedat4
 
 
 @pytest.fixture(scope="session")
+def davis346_calibrations() -> Path:
+    """Real DAVIS346 calibrations (ROS camera_info and Kalibr files)."""
+    folder = SHARED / "data" / "davis346-calibrations"
+    if not folder.exists():
+        pytest.skip(f"the real DAVIS346 calibrations are not at {folder} (set EVCAP_SHARED)")
+    return folder
+
+
+@pytest.fixture(scope="session")
 def sample_aedat4() -> Path:
     if not SAMPLE_AEDAT4.exists():
         pytest.skip(f"the real DAVIS346 sample is not at {SAMPLE_AEDAT4} (set EVCAP_SHARED)")

@@ -11,7 +11,7 @@ from PIL import Image
 from evcap.calib.board import DEFAULT_BOARD, Board, parse_board, write_board_image
 from evcap.calib.intrinsics import detect_board
 from evcap.errors import InputError
-from evcap.sim.scene import CALIBRATIONS, load_scene
+from evcap.sim.scene import load_scene
 
 SCENE = Path(__file__).resolve().parents[2] / "sim" / "scenes" / "charuco_board.toml"
 
@@ -34,8 +34,6 @@ def default_params() -> tuple:
 
 
 def test_default_board_is_the_simulated_scenes_board():
-    if not CALIBRATIONS.exists():
-        pytest.skip("needs ../shared (the scene uses a real calibration)")
     scene = load_scene(SCENE)
     objects = [dict(o.params, type=o.kind) for o in scene.objects if o.kind == "charuco"]
     assert scene_board_params(objects) == default_params()

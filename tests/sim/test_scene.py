@@ -5,15 +5,14 @@ import pytest
 
 from evcap.errors import InputError, InputNotFoundError
 from evcap.sim.camera import Camera, load_calibration
-from evcap.sim.scene import CALIBRATIONS, load_scene
+from evcap.sim.scene import load_scene
 
 SCENES = Path(__file__).resolve().parents[2] / "sim" / "scenes"
 
 
 @pytest.mark.parametrize("name", ["single_object", "multi_object", "charuco_board", "noisy_sensor"])
 def test_example_scenes_load(name):
-    if not CALIBRATIONS.exists():
-        pytest.skip("needs ../shared (the scenes use a real calibration)")
+    # the scenes carry their camera's numbers: they load without ../shared (an installed evcap)
     scene = load_scene(SCENES / f"{name}.toml")
     assert scene.camera.width == 346 and scene.camera.distortion_model == "radtan"
     if name == "noisy_sensor":
@@ -68,20 +67,18 @@ def test_scene_errors_name_the_problem(tiny_scene, change, message):
         load_scene(path)
 
 
-def test_real_calibrations_and_distortion_round_trip():
-    if not CALIBRATIONS.exists():
-        pytest.skip("needs ../shared")
+def test_real_calibrations_and_distortion_round_trip(davis346_calibrations):
     for name in (
         "esvo_hkust_davis346_left.yaml",
         "esvo_upenn_davis346_left.yaml",
         "arclab_esvio_kalibr_camchain-imucam.yaml",
         "arclab_iros2022_davis346.yaml",
     ):
-        cam = Camera(load_calibration(CALIBRATIONS / name))
+        cam = Camera(load_calibration(davis346_calibrations / name))
         rays = cam.rays()
         uv = cam.project(rays * 2.0)
         v, u = np.mgrid[0 : cam.height, 0 : cam.width]
         np.testing.assert_allclose(uv, np.stack([u.ravel(), v.ravel()], 1), atol=1e-6)
         assert 220 < cam.K[0, 0] < 265 and (cam.width, cam.height) == (346, 260)
     with pytest.raises(InputError, match="not a ROS camera_info"):
-        load_calibration(CALIBRATIONS / "arclab_esvio_kalibr_imu.yaml")
+        load_calibration(davis346_calibrations / "arclab_esvio_kalibr_imu.yaml")
