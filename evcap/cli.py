@@ -237,10 +237,10 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
             )
         print(f"{args.output}: {n:,} events from {args.from_images}")
         return 0
-    from evcap.sim.scene import load_scene
+    from evcap.sim.scene import example_scene, load_scene
     from evcap.sim.simulate import simulate
 
-    scene = load_scene(args.scene)
+    scene = load_scene(example_scene(args.scene))
     with progress_bar(f"simulating {scene.name}") as update:
         stats = simulate(
             scene,
@@ -507,7 +507,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="Simulate a scene (TOML, see sim/scenes/README.md) into a session with its "
         "ground truth (/gt), poses and calibration; or events from posed images.",
     )
-    p.add_argument("scene", nargs="?", help="the scene file (.toml)")
+    p.add_argument(
+        "scene",
+        nargs="?",
+        help="the scene file (.toml), or the name of an example scene that ships with evcap "
+        "(single_object, multi_object, charuco_board, noisy_sensor, demo_orbit, demo_calibration)",
+    )
     p.add_argument("-o", "--output", required=True, help="the session file to write (.h5)")
     p.add_argument("--fixture", metavar="DIR", help="also write a hardware-replay fixture")
     p.add_argument("--seed", type=int, help="random seed (default: the scene's)")

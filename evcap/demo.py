@@ -1,6 +1,6 @@
 """`evcap demo`: the whole of evcap on a bundled capture, with no camera.
 
-Two hardware-replay fixtures (hw-fixtures/demo-scene and demo-calibration, made by the
+Two hardware-replay fixtures (evcap/demo_data/demo-scene and demo-calibration, made by the
 simulator) are recorded through the real driver, the calibration recording calibrates the
 scene's, the poses come from the scene's events, the reconstruction runs both stages and the
 report shows it all. Each step is saved as it ends (DIR/demo.json), so a second run goes on
@@ -21,7 +21,7 @@ import numpy as np
 from evcap.errors import InputError, OutputExistsError
 from evcap.recon.config import PRESETS as RADIANCE_PRESETS
 
-FIXTURES = Path(__file__).resolve().parent.parent / "hw-fixtures"
+FIXTURES = Path(__file__).resolve().parent / "demo_data"  # package data: in the wheel too
 SCENE, CALIBRATION = "demo-scene", "demo-calibration"
 PRESETS = ("tiny", "fast")
 # stage I of the demo's tiny: tiny's Gaussians for 1,000 steps at half scale (about a minute
@@ -97,8 +97,8 @@ def run_demo(
     for name in (SCENE, CALIBRATION):
         if not (fixtures / name / "bulk.bin").exists():
             raise InputError(
-                f"the demo's capture {fixtures / name} is missing: it ships with evcap's source "
-                "(hw-fixtures/); run the demo from a clone, or name the folder with --fixtures"
+                f"the demo's capture {fixtures / name} is missing: it ships with evcap "
+                "(evcap/demo_data/); reinstall evcap, or name the folder with --fixtures"
             )
     state = _read_state(out, preset, force)
     ctx = DemoContext(out, fixtures, preset, progress or progress_bar, say)

@@ -40,6 +40,7 @@ from evcap.streams import Frames, TriggerKind, Triggers
 
 HERE = Path(__file__).resolve().parent
 SHARED = Path(os.environ.get("EVCAP_SHARED", HERE.parent.parent / "shared"))
+DEMO_DATA = HERE.parent / "evcap" / "demo_data"  # the demo's fixtures ship inside the package
 SAMPLE = SHARED / "data" / "davis346-sample" / "davis346_test_data.aedat4"
 SCENES = HERE.parent / "sim" / "scenes"
 W, H = 346, 260
@@ -435,8 +436,8 @@ def main() -> int:
     )
     args = parser.parse_args()
     if args.demo:
-        for name in generate_demo(HERE, args.keep_sessions):
-            print(f"wrote {HERE / name}")
+        for name in generate_demo(DEMO_DATA, args.keep_sessions):
+            print(f"wrote {DEMO_DATA / name}")
         return 0
     if not args.check:
         for name in generate(HERE):
@@ -457,7 +458,7 @@ def main() -> int:
                         differ.append(str(mine))
         for path in differ:
             print(f"differs from the generator: {path}")
-    demo = check_demo(HERE)
+    demo = check_demo(DEMO_DATA)
     for line in demo:
         print(line)
     return 1 if differ or demo else 0

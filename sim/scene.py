@@ -331,6 +331,21 @@ def _relight(t: Table, base: Path, lighting: Lighting) -> Lighting:
     return dataclasses.replace(lighting, points=(), **env)
 
 
+EXAMPLES = Path(__file__).resolve().parent / "scenes"  # shipped inside the package
+
+
+def example_scene(name_or_path: str | os.PathLike) -> Path:
+    """A scene file's path: the file itself when it exists, else the example scene so named."""
+    path = Path(name_or_path)
+    if path.exists() or path.suffix:
+        return path
+    example = EXAMPLES / f"{path.name}.toml"
+    if not example.exists():
+        names = ", ".join(sorted(p.stem for p in EXAMPLES.glob("*.toml")))
+        raise InputNotFoundError(f"{name_or_path}: no such scene file, nor example ({names})")
+    return example
+
+
 def load_scene(path: str | os.PathLike) -> Scene:
     """Read and check a scene file."""
     path = Path(path)
