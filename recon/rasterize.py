@@ -114,19 +114,16 @@ def pick_backend(name: str | None, device: torch.device | str) -> str:
     return name
 
 
-def _check_inputs(means: torch.Tensor, **per_gaussian: torch.Tensor) -> None:
+def _check_inputs(means, quats, scales, opacities, features) -> None:
     """Shapes that agree, and finite values: a NaN would render a finite image whose gradients
     are NaN, silently."""
-    if means.ndim != 2 or means.shape[1] != 3:
-        raise ValueError(f"rasterize: means must be [N, 3], not {list(means.shape)}")
     n = means.shape[0]
-    shapes = {"quats": (n, 4), "scales": (n, 3), "opacities": (n,)}
-    for name, value in {"means": means, **per_gaussian}.items():
-        want = shapes.get(name)
-        if name == "features" and (value.ndim != 2 or value.shape[0] != n):
-            raise ValueError(f"rasterize: features must be [{n}, D], not {list(value.shape)}")
-        if want is not None and tuple(value.shape) != want:
-            raise ValueError(f"rasterize: {name} must be {list(want)}, not {list(value.shape)}")
+    shapes = {"means": [n, 3], "quats": [n, 4], "scales": [n, 3], "opacities": [n]}
+    shapes["features"] = [n, features.shape[-1]]
+    values = {"means": means, "quats": quats, "scales": scales, "opacities": opacities}
+    for name, value in {**values, "features": features}.items():
+        if list(value.shape) != shapes[name]:
+            raise ValueError(f"rasterize: {name} must be {shapes[name]}, not {list(value.shape)}")
         bad = int((~torch.isfinite(value.detach())).reshape(n, -1).any(1).sum()) if n else 0
         if bad:
             raise NumericalError(
@@ -150,7 +147,7 @@ def rasterize(
     """Render N Gaussians (means [N, 3], quats [N, 4], scales [N, 3] (not log), opacities [N]
     in (0, 1), features [N, D] (colors, or any per-Gaussian values)) into ``camera``.
     ``background`` [H, W, D] or [D] is added where the Gaussians leave light through."""
-    _check_inputs(means, quats=quats, scales=scales, opacities=opacities, features=features)
+    _check_inputs(means, quats, scales, opacities, features)
     if backend == "cpu":
         from evcap.recon._raster_cpu import rasterize_cpu as impl
     elif backend == "torch":
