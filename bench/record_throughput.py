@@ -1,7 +1,8 @@
 """End-to-end recording throughput: a replay camera serving a dense stream (12 Mev/s of events,
 frames at 25 fps, IMU at 1 kHz) as fast as it can, through the reader thread, the decoder and
 the session writer, into a session file. Then `evcap record` on it as a user runs it: its peak
-memory, and how soon it ends after Ctrl-C (SIGINT) with the backlog it has then.
+memory, how soon it ends after Ctrl-C (SIGINT) with the backlog it has then, and its memory
+and session length on 658 kB of random bytes (a flaky cable).
 
     .venv/bin/python bench/record_throughput.py [--seconds S]
 """
@@ -90,6 +91,14 @@ def main() -> None:
         exit_s = time.perf_counter() - interrupted
         with Session.open(out) as s:  # opening validates it: complete, index and all
             kept = s.n_events
+        # a flaky cable: 658 kB of random bytes for the stream
+        noise = Path(tmp) / "noise"
+        rng = np.random.default_rng(0)
+        make_fixture(noise, rng.integers(0, 256, 658_000, np.uint8).tobytes(), args.transfer_size)
+        record[record.index("--device") + 1] = f"replay:{noise}"
+        noise_mb = peak_memory_mb(subprocess.Popen(record, stderr=subprocess.DEVNULL))
+        with Session.open(out) as s:
+            noise_span_s = (s.time_range()[1] - s.time_range()[0]) / 1e6
     report(
         "record_throughput",
         {
@@ -104,6 +113,8 @@ def main() -> None:
             "cli_peak_memory_MB": peak_mb,
             "cli_exit_after_sigint_s": exit_s,
             "cli_events_kept_at_sigint": kept,
+            "cli_random_bytes_peak_memory_MB": noise_mb,
+            "cli_random_bytes_session_s": noise_span_s,
         },
     )
 
