@@ -26,13 +26,13 @@ def poses_against_truth(path: Path, work: Path, kind: str, gyro: bool) -> tuple[
     Returns the figures and the copy, whose /poses then holds the aligned estimate."""
     from evcap.poses.align import align_similarity, apply_similarity, pose_errors
     from evcap.poses.estimate import estimate_poses, write_poses
-    from evcap.poses.track import PoseTrack
+    from evcap.records import Poses
     from evcap.session import Session
 
     copy = work / f"{path.stem}_{kind}.h5"
     shutil.copy(path, copy)
     with Session.open(path) as s:
-        truth = PoseTrack.from_session(s)
+        truth = Poses.read(s)
     t0 = time.perf_counter()
     result = estimate_poses(copy, kind=kind, gyro=gyro)
     seconds = time.perf_counter() - t0

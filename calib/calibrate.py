@@ -17,7 +17,8 @@ from evcap.calib.intrinsics import IntrinsicsResult, calibrate_intrinsics
 from evcap.calib.noise import NoiseStats, measure_noise
 from evcap.calib.thresholds import DATASHEET_THRESHOLDS, ThresholdFit, fit_thresholds
 from evcap.errors import CalibrationError, InputError
-from evcap.session import Session, read_intrinsics, write_group
+from evcap.records import read_intrinsics
+from evcap.session import Session, write_group
 
 SKIPPABLE = ("intrinsics", "thresholds")  # the noise is always measured: it finds the hot pixels
 # Frames of the board made from the events when the recording has no APS frames: rate and
@@ -359,7 +360,7 @@ def _event_images(events, on, off, hot, board: Board) -> tuple[np.ndarray, np.nd
     each of EVENT_FRAME_CUTOFFS_HZ, keeping those in which the board shows most often (the
     corner that suits depends on how fast the camera moves)."""
     from evcap.calib.intrinsics import MIN_CORNERS, detect_board, frame_to_gray
-    from evcap.poses.filter_frames import high_pass_frames
+    from evcap.event_frames import high_pass_frames
 
     step = int(1e6 / EVENT_FRAME_HZ)
     times = np.arange(int(events.t[0]) + step, int(events.t[-1]), step, dtype=np.int64)

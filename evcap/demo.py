@@ -229,7 +229,7 @@ def _register(ctx: DemoContext) -> str:
     similarity), so that the reconstruction is measured against the true held-out views. Only
     the evaluation uses the truth: the poses were estimated from the events alone."""
     from evcap.poses.align import apply_similarity, pose_errors
-    from evcap.poses.track import PoseTrack
+    from evcap.records import Poses
     from evcap.session import Session, write_group
     from evcap.sim.truth import copy_truth
 
@@ -239,7 +239,7 @@ def _register(ctx: DemoContext) -> str:
         t, T, attrs = poses["t"][:], poses["T_world_cam"][:], dict(poses.attrs)
         points = poses["points_xyz"][:] if "points_xyz" in poses else None
         gt = s.group("gt")
-        truth = PoseTrack(gt["t"][:], gt["T_world_cam"][:])
+        truth = Poses(gt["t"][:], gt["T_world_cam"][:])
     inside = (t >= truth.start) & (t <= truth.end)
     errors = pose_errors(T[inside], truth.at(t[inside]), by="poses")
     attrs["scale"] = "metric: registered to the simulator's truth by a similarity"

@@ -30,7 +30,6 @@ import numpy as np
 
 from evcap import __version__
 from evcap.errors import (
-    InputError,
     InputNotFoundError,
     OutputExistsError,
     SessionFormatError,
@@ -469,46 +468,6 @@ class SessionWriter:
             self.abort()
 
 
-def stored_distortion(calibration: h5py.Group) -> np.ndarray:
-    """The distortion coefficients of a /calibration group (`dist`; sessions written before the
-    name changed hold `distortion`); empty when it has none."""
-    for name in ("dist", "distortion"):
-        if name in calibration:
-            return np.asarray(calibration[name][()], np.float64)
-    return np.zeros(0)
-
-
-DISTORTION_MODELS = ("none", "radtan", "equidistant")
-
-
-def read_intrinsics(session: Session) -> tuple[np.ndarray, str, np.ndarray]:
-    """(K, distortion model, coefficients) of the session's /calibration, checked: the one
-    reader of the intrinsics, so that every step refuses a bad group with the same message."""
-    where = f"{session.path}: /calibration"
-    if "calibration" not in session.groups or "K" not in session.group("calibration"):
-        raise InputError(
-            f"{session.path} has no intrinsics (/calibration/K): run `evcap calibrate` on it, "
-            "or `evcap calibrate --apply-to` from a calibration recording of the same camera"
-        )
-    g = session.group("calibration")
-    try:
-        K = np.asarray(g["K"][()], np.float64)
-        dist = stored_distortion(g)
-    except (TypeError, ValueError) as e:
-        raise InputError(f"{where} holds values that are not numbers ({e})") from None
-    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise InputError(
-            f"{where}/K is not an intrinsic matrix (3 x 3, finite, positive focal lengths): "
-            f"shape {list(K.shape)}; run `evcap calibrate` again"
-        )
-    model = str(g.attrs.get("distortion_model", "none"))
-    if model not in DISTORTION_MODELS:
-        raise InputError(f"{where}: unknown distortion model {model!r}")
-    if dist.ndim != 1 or not np.isfinite(dist).all():
-        raise InputError(f"{where}: the distortion is not a finite list of coefficients")
-    return K, model, dist
-
-
 def write_group(
     path: str | os.PathLike,
     name: str,
@@ -516,10 +475,12 @@ def write_group(
     attrs: dict | None = None,
     *,
     replace: bool = False,
+    compression_level: int = 4,
 ) -> None:
-    """Add the group /``name`` to a closed session (how calibration, poses and a simulator's
-    ground truth are stored; docs/session-format.md). Arrays of 3 or more dimensions are
-    chunked one item of their first axis at a time, so that readers load single frames."""
+    """Add the group /``name`` to a closed session (the records of evcap.records store
+    calibration, poses and ground truth so; docs/session-format.md). Arrays of 3 or more
+    dimensions are chunked one item of their first axis at a time, so that readers load single
+    frames."""
     path = Path(path)
     try:
         f = h5py.File(path, "r+")
@@ -540,7 +501,11 @@ def write_group(
             a = np.asarray(value)
             options = {}
             if a.size > 256 and a.dtype.kind in "biuf":
-                options = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
+                options = {
+                    "compression": "gzip",
+                    "compression_opts": compression_level,
+                    "shuffle": True,
+                }
                 options["chunks"] = (1, *a.shape[1:]) if a.ndim >= 3 else True
             group.create_dataset(key, data=a, **options)
         for key, value in (attrs or {}).items():

@@ -18,8 +18,8 @@ from evcap.poses.gravity import Gravity, gravity_up, level, level_rotation
 from evcap.poses.gyro import GyroFit, fit_gyro
 from evcap.poses.refine import Refined, refine_positions
 from evcap.poses.sfm import SfmResult, run_sfm
-from evcap.poses.track import PoseTrack
-from evcap.session import Session, read_intrinsics, write_group
+from evcap.records import Poses, read_intrinsics
+from evcap.session import Session, write_group
 from evcap.streams import Frames, ImuSamples
 
 MIN_EVENTS = 10_000
@@ -157,7 +157,7 @@ def estimate_poses(
         points = refined.points if refined is not None else points
     if gravity and len(imu) and len(sfm.t_us) >= 2:
         try:
-            up = gravity_up(PoseTrack(sfm.t_us, T_world_cam), imu.t, imu.accel)
+            up = gravity_up(Poses(sfm.t_us, T_world_cam), imu.t, imu.accel)
             T_world_cam = level(T_world_cam, up.up)
             points = points @ level_rotation(up.up).T
         except InputError as e:  # the poses stand without it

@@ -75,7 +75,7 @@ def event_frames(
     if kind == "filter":
         if weights is not None:
             raise InputError("--weights is for --frames e2vid or firenet, not filter")
-        from evcap.poses.filter_frames import high_pass_frames
+        from evcap.event_frames import high_pass_frames
 
         mosaics = high_pass_frames(
             events,

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from evcap.errors import InputError
-from evcap.poses.track import PoseTrack
+from evcap.records import Poses
 
 GRAVITY = 9.80665  # m/s^2
 MIN_SAMPLES = 50
@@ -27,7 +27,7 @@ class Gravity:
     magnitude: float  # |mean specific force| (m/s^2): about 9.81 when the estimate holds
 
 
-def gravity_up(track: PoseTrack, imu_t: np.ndarray, accel: np.ndarray) -> Gravity:
+def gravity_up(track: Poses, imu_t: np.ndarray, accel: np.ndarray) -> Gravity:
     """Where up is in the track's world, from the accelerometer samples during the track."""
     imu_t, accel = np.asarray(imu_t, np.int64), np.asarray(accel, np.float64)
     inside = (imu_t >= track.start) & (imu_t <= track.end) & np.isfinite(accel).all(axis=1)

@@ -17,7 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from evcap.errors import InputError
-from evcap.poses.track import PoseTrack, exp_so3, log_so3
+from evcap.records import Poses
+from evcap.rotations import exp_so3, log_so3
 
 MIN_SAMPLES = 50
 MIN_FRAMES = 5
@@ -74,7 +75,7 @@ def _at(R: np.ndarray, t_us: np.ndarray, times: np.ndarray) -> np.ndarray:
     """R sampled at ``t_us``, at ``times`` (inside), turning at constant rate in between."""
     T = np.tile(np.eye(4), (len(R), 1, 1))
     T[:, :3, :3] = R
-    return PoseTrack(t_us, T).at(times)[:, :3, :3]
+    return Poses(t_us, T).at(times)[:, :3, :3]
 
 
 def _world(Rg: np.ndarray, R_frames: np.ndarray) -> np.ndarray:

@@ -11,9 +11,9 @@ import numpy as np
 import torch
 
 from evcap.errors import InputError
+from evcap.images import srgb
 from evcap.recon.gaussians import Background, Gaussians
 from evcap.recon.material import MaterialField
-from evcap.recon.metrics import srgb
 from evcap.recon.radiance import RadianceField
 from evcap.recon.sh import C0
 

@@ -21,9 +21,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from evcap.edge_maps import edge_map
 from evcap.errors import NumericalError
 from evcap.recon.config import MaterialConfig, RadianceConfig
-from evcap.recon.edges import edge_map
 from evcap.recon.gaussians import Background, Gaussians
 from evcap.recon.losses import anchor_loss
 from evcap.recon.optics import RenderGrid

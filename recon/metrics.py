@@ -20,10 +20,7 @@ import math
 import numpy as np
 import torch
 
-
-def srgb(linear: np.ndarray) -> np.ndarray:
-    x = np.clip(linear, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+from evcap.images import fit_color_correction, srgb
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -44,17 +41,6 @@ def ssim_map(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def ssim(a: np.ndarray, b: np.ndarray) -> float:
     """Mean SSIM (11 x 11 Gaussian window) of images [N, H, W, C] in [0, 1]."""
     return float(ssim_map(a, b).mean())
-
-
-def fit_color_correction(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    """[C, 2] gain and offset per channel that best map ``pred`` onto ``gt`` (least squares)."""
-    p = pred.reshape(-1, pred.shape[-1]).astype(np.float64)
-    g = gt.reshape(-1, gt.shape[-1]).astype(np.float64)
-    out = np.zeros((p.shape[1], 2))
-    for c in range(p.shape[1]):
-        A = np.stack([p[:, c], np.ones(len(p))], 1)
-        out[c] = np.linalg.lstsq(A, g[:, c], rcond=None)[0]
-    return out
 
 
 def image_metrics(pred: np.ndarray, gt: np.ndarray, prefix: str) -> dict[str, float]:

@@ -17,7 +17,8 @@ import torch.nn.functional as F
 
 from evcap.errors import InputError
 from evcap.events import Channel, pixel_channels
-from evcap.session import Session, read_intrinsics
+from evcap.records import read_intrinsics
+from evcap.session import Session
 
 # what each channel sees of the rendered (R, G, B): a Bayer pixel one of them, MONO luminance
 CHANNEL_WEIGHTS = torch.tensor(

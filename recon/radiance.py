@@ -19,7 +19,6 @@ import torch
 import torch.nn.functional as F
 
 from evcap.errors import InputError, NumericalError
-from evcap.poses.track import PoseTrack
 from evcap.recon.config import RadianceConfig
 from evcap.recon.densify import Densifier
 from evcap.recon.event_windows import EventWindows
@@ -38,6 +37,7 @@ from evcap.recon.optics import CHANNEL_WEIGHTS, RenderGrid, SensorOptics, render
 from evcap.recon.rasterize import Camera, Render, rasterize
 from evcap.recon.resume import Steps, random_states, restore_random_states
 from evcap.recon.volume import SceneVolume, sample_points, scene_volume
+from evcap.records import Poses
 from evcap.session import Session
 
 
@@ -46,7 +46,7 @@ class TrainingData:
     """What stage I takes from a session."""
 
     optics: SensorOptics
-    track: PoseTrack
+    track: Poses
     windows: EventWindows
     grid: RenderGrid  # the training renders
     coarse_grid: RenderGrid | None  # the renders of the run's first part (coarse to fine)
@@ -58,7 +58,7 @@ class TrainingData:
 
 def load_training_data(session: Session, config: RadianceConfig, device: str) -> TrainingData:
     optics = SensorOptics.from_session(session)
-    track = PoseTrack.from_session(session)
+    track = Poses.read(session)
     span = session.time_range()
     if span is None:
         raise InputError(f"{session.path} has no events to reconstruct from")

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from evcap.errors import InputError, InputNotFoundError
+from evcap.records import Calibration
 from evcap.report.images import (
     colormap,
     depth_image,
@@ -36,7 +37,7 @@ from evcap.report.images import (
     value_range,
 )
 from evcap.report.svg import COLORS, Series, Track, line_plot, trajectory_views
-from evcap.session import Session, stored_distortion
+from evcap.session import Session
 
 REPORT = "report.html"
 # the sections, in order: (anchor, heading)
@@ -317,7 +318,7 @@ def _calibration_section(s: Session) -> str:
                 f"cy {_number(K[1, 2])} px",
             )
         )
-        dist = stored_distortion(g)
+        dist = Calibration.read(s).dist
         coefficients = " ".join(f"{d:+.4g}" for d in dist) if len(dist) else "none"
         rows.append(("distortion", f"{a.get('distortion_model', 'unknown')}: {coefficients}"))
     else:
@@ -407,7 +408,7 @@ def _calibration_maps(g, hot: np.ndarray | None) -> str:
 
 def _trajectory_section(s: Session) -> str:
     from evcap.poses.align import apply_similarity, pose_errors
-    from evcap.poses.track import PoseTrack
+    from evcap.records import Poses
 
     if "poses" not in s.groups:
         return _missing("The session has no /poses group (run `evcap poses` on it).")
@@ -430,7 +431,7 @@ def _trajectory_section(s: Session) -> str:
     elif truth is not None:
         t_true, T_true = truth
         try:
-            track = PoseTrack(t, T)
+            track = Poses(t, T)
             inside = (t_true >= track.start) & (t_true <= track.end)
             errors = pose_errors(track.at(t_true[inside]), T_true[inside], by="poses")
         except InputError as e:
@@ -492,7 +493,7 @@ def _trajectory_section(s: Session) -> str:
 
 
 def _edges_section(s: Session, config: dict) -> str:
-    from evcap.recon.edges import edge_map
+    from evcap.edge_maps import edge_map
 
     span = s.time_range()
     if span is None or s.n_events == 0:
@@ -523,7 +524,7 @@ def _edges_section(s: Session, config: dict) -> str:
         )
     note = (
         "<p>Stage II computes its edge maps for its own training frames and does not save "
-        f"them; these {len(times)} are made here the same way (evcap.recon.edges, contrast "
+        f"them; these {len(times)} are made here the same way (evcap.edge_maps, contrast "
         f"maximisation) from the {slice_us / 1000:g} ms of events before each time, hot "
         "pixels left out. Left: the events as they came (ON red, OFF blue); right: the edge "
         "map (white: an edge).</p>"
@@ -598,7 +599,7 @@ MAP_COLUMNS = (
 
 
 def _view_table(i: int, stages: list, truth: dict) -> str:
-    from evcap.recon.metrics import fit_color_correction
+    from evcap.images import fit_color_correction
 
     rows = []
     all_depths = [v["depth"][i] for _, _, v in stages if "depth" in v and len(v["depth"]) > i]

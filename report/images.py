@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from evcap.recon.metrics import srgb
+from evcap.images import srgb
 
 INVALID_RGB = (255, 0, 255)  # NaN or infinity, in every kind of map
 EMPTY_RGB = (24, 24, 24)  # no surface in a depth or normal map

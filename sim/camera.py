@@ -74,7 +74,8 @@ def load_calibration(path: str | Path) -> CameraSpec:
 
 def _session_calibration(path: Path) -> CameraSpec:
     """The intrinsics of an evcap session's /calibration (measured by `evcap calibrate`)."""
-    from evcap.session import Session, read_intrinsics
+    from evcap.records import read_intrinsics
+    from evcap.session import Session
 
     with Session.open(path, validate=False) as s:
         K, model, dist = read_intrinsics(s)

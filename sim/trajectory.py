@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from evcap.errors import InputError
-from evcap.poses.track import exp_so3, log_so3
+from evcap.rotations import exp_so3, log_so3
 from evcap.sim.scene import TrajectorySpec
 
 GRAVITY = 9.80665  # m/s^2

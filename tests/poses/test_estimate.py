@@ -11,14 +11,14 @@ from evcap.cli import main
 from evcap.errors import InputError
 from evcap.poses.align import pose_errors
 from evcap.poses.estimate import estimate_poses
-from evcap.poses.track import PoseTrack
+from evcap.records import Poses
 from evcap.session import Session
 
 
 def test_poses_from_the_events(board_session, tmp_path, capsys):
     session = shutil.copy(board_session, tmp_path / "s.h5")
     with Session.open(board_session) as s:
-        truth = PoseTrack.from_session(s)
+        truth = Poses.read(s)
     frames = tmp_path / "frames"
     assert main(["poses", str(session), "--export-frames", str(frames)]) == 0
     out = capsys.readouterr().out

@@ -7,7 +7,7 @@ import pytest
 
 from evcap.errors import InputError
 from evcap.poses.gravity import gravity_up, level, level_rotation
-from evcap.poses.track import PoseTrack
+from evcap.records import Poses
 from evcap.sim.scene import TrajectorySpec
 from evcap.sim.trajectory import Trajectory
 
@@ -47,7 +47,7 @@ def test_a_tilted_and_scaled_world_is_leveled(handheld):
     G[:3, 3] = [3, -1, 2]
     T_est = G @ T
     T_est[:, :3, 3] *= 0.1  # structure from motion's scale is arbitrary
-    g = gravity_up(PoseTrack(t, T_est), imu_t, accel)
+    g = gravity_up(Poses(t, T_est), imu_t, accel)
     assert abs(g.magnitude - 9.80665) < 0.3
     leveled = level(T_est, g.up)
     # the cameras' viewing directions keep their elevation: the world's tilt is undone
@@ -66,7 +66,7 @@ def test_level_rotation_takes_up_to_z():
 
 def test_too_few_or_inconsistent_samples_are_refused(handheld):
     t, T, imu_t, accel = handheld
-    track = PoseTrack(t, T)
+    track = Poses(t, T)
     with pytest.raises(InputError, match="IMU samples"):
         gravity_up(track, imu_t[:10], accel[:10])
     # IMU axes that do not follow the camera: the forces cancel out

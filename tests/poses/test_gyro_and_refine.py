@@ -11,7 +11,7 @@ from evcap.poses.align import align_similarity
 from evcap.poses.gyro import fit_gyro, integrate
 from evcap.poses.refine import refine_positions
 from evcap.poses.sfm import Observations
-from evcap.poses.track import exp_so3, log_so3, skew
+from evcap.rotations import exp_so3, log_so3, skew
 from evcap.sim.trajectory import look_at
 
 

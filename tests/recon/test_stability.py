@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from evcap.poses.track import PoseTrack
 from evcap.recon.event_windows import EventWindows
 from evcap.recon.losses import anchor_loss, event_loss, log_radiance, normal_loss
 from evcap.recon.rasterize import Camera, rasterize
+from evcap.records import Poses
 
 
 def camera(width=24, height=18):
@@ -187,7 +187,7 @@ def test_microsecond_times_far_from_zero_stay_exact():
     assert abs(int(np.float32(t0)) - t0) > 1000  # float32 would be off by milliseconds
     poses = np.repeat(np.eye(4)[None], 2, 0)
     poses[1, 0, 3] = 1.0  # 1 m along x in 10 ms
-    track = PoseTrack(times, poses)
+    track = Poses(times, poses)
     at = track.at(np.array([t0 + 1, t0 + 5_000, t0 + 9_999], np.int64))
     np.testing.assert_allclose(at[:, 0, 3], [1e-4, 0.5, 0.9999], rtol=0, atol=1e-12)
     w = windows_from_codes([2, 3, 5], [t0, t0 + 5_000, t0 + 10_000], [0, 1, 3])

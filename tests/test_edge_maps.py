@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from evcap.recon.edges import edge_map, variance_gain
+from evcap.edge_maps import edge_map, variance_gain
 
 pytestmark = pytest.mark.filterwarnings("error")
 

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from evcap.errors import InputError
+from evcap.event_frames import high_pass_frames
 from evcap.events import Events
-from evcap.poses.filter_frames import high_pass_frames
 
 
 def test_events_add_their_thresholds_and_fade():

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from evcap.errors import InputError
-from evcap.poses.track import PoseTrack, quat_to_rotmat, rotmat_to_quat, slerp
+from evcap.records import Poses
+from evcap.rotations import quat_to_rotmat, rotmat_to_quat, slerp
 from evcap.session import SensorInfo, Session, SessionWriter
 
 T0 = 1_700_000_000_000_000
@@ -43,7 +44,7 @@ def make_track(n=5, seed=0, dt=1000):
     T = np.tile(np.eye(4), (n, 1, 1))
     T[:, :3, :3] = quat_to_rotmat(random_quats(rng, n))
     T[:, :3, 3] = rng.normal(size=(n, 3))
-    return PoseTrack(T0 + dt * np.arange(n), T)
+    return Poses(T0 + dt * np.arange(n), T)
 
 
 def test_quat_rotmat_round_trip_on_random_rotations():
@@ -168,7 +169,7 @@ def test_track_rotation_about_one_axis_turns_at_constant_rate_per_segment():
     angles = [0.0, 0.8, 2.0, 2.5]
     T = np.tile(np.eye(4), (4, 1, 1))
     T[:, :3, :3] = quat_to_rotmat(np.stack([axis_angle_quat(axis, a) for a in angles]))
-    track = PoseTrack(T0 + np.array([0, 400, 1400, 1500]), T)
+    track = Poses(T0 + np.array([0, 400, 1400, 1500]), T)
     t = T0 + np.arange(0, 1501, 50)
     expected = np.interp(t - T0, [0, 400, 1400, 1500], angles)
     got = rotmat_to_quat(track.at(t)[:, :3, :3])
@@ -208,22 +209,22 @@ def test_track_at_outside_the_span_raises_naming_it(offset):
 def test_track_construction_errors():
     T = np.tile(np.eye(4), (3, 1, 1))
     with pytest.raises(InputError, match="increase"):
-        PoseTrack([0, 10, 10], T)
+        Poses([0, 10, 10], T)
     with pytest.raises(InputError, match="increase"):
-        PoseTrack([0, 20, 10], T)
+        Poses([0, 20, 10], T)
     with pytest.raises(InputError, match="at least two"):
-        PoseTrack([0], T[:1])
+        Poses([0], T[:1])
     with pytest.raises(InputError, match="at least two"):
-        PoseTrack(np.zeros(0, np.int64), np.zeros((0, 4, 4)))
+        Poses(np.zeros(0, np.int64), np.zeros((0, 4, 4)))
     for bad in (np.nan, np.inf):
         T_bad = T.copy()
         T_bad[1, 0, 3] = bad
         with pytest.raises(InputError, match="NaN"):
-            PoseTrack([0, 10, 20], T_bad)
+            Poses([0, 10, 20], T_bad)
     with pytest.raises(InputError, match="shape"):
-        PoseTrack([0, 10], T)
+        Poses([0, 10], T)
     with pytest.raises(InputError, match="shape"):
-        PoseTrack([0, 10, 20], T[:, :3, :])
+        Poses([0, 10, 20], T[:, :3, :])
 
 
 def test_from_session_without_poses_says_to_run_evcap_poses(tmp_path):
@@ -231,4 +232,4 @@ def test_from_session_without_poses_says_to_run_evcap_poses(tmp_path):
     with SessionWriter(path, SensorInfo("simulated", 8, 6, "RGBG", "SIM0001", T0)):
         pass
     with Session.open(path) as s, pytest.raises(InputError, match="run `evcap poses`"):
-        PoseTrack.from_session(s)
+        Poses.read(s)

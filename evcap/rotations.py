@@ -1,15 +1,8 @@
-"""Camera poses over time: a timestamped track, interpolated at any time (position linearly,
-rotation by slerp). Times are int64 microseconds; only the fraction between two poses is a
-float, so that long recordings keep their precision."""
+"""Rotations: rotation vectors (so(3)), matrices and unit quaternions, and slerp."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
-
-from evcap.errors import InputError
-from evcap.session import Session
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -94,57 +87,3 @@ def slerp(q0: np.ndarray, q1: np.ndarray, s: np.ndarray) -> np.ndarray:
     b = np.where(small, s, np.sin(s * theta) / np.where(small, 1, sin))
     q = a[..., None] * q0 + b[..., None] * q1
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
-
-
-@dataclass
-class PoseTrack:
-    t: np.ndarray  # [N] int64 microseconds, increasing
-    T_world_cam: np.ndarray  # [N, 4, 4] camera-to-world, OpenCV camera axes
-
-    def __post_init__(self) -> None:
-        self.t = np.asarray(self.t, np.int64)
-        self.T_world_cam = np.asarray(self.T_world_cam, np.float64)
-        if self.T_world_cam.shape != (len(self.t), 4, 4):
-            raise InputError(
-                f"poses: {len(self.t)} times but transforms of shape {self.T_world_cam.shape}"
-            )
-        if len(self.t) < 2:
-            raise InputError("poses: at least two timestamped poses are needed")
-        if np.any(np.diff(self.t) <= 0):
-            raise InputError("poses: times must increase")
-        if not np.isfinite(self.T_world_cam).all():
-            raise InputError("poses: transforms hold NaN or infinity")
-        self._q = rotmat_to_quat(self.T_world_cam[:, :3, :3])
-
-    @classmethod
-    def from_session(cls, session: Session) -> PoseTrack:
-        if "poses" not in session.groups:
-            raise InputError(
-                f"{session.path} has no camera poses (/poses); run `evcap poses` on it first"
-            )
-        g = session.group("poses")
-        return cls(g["t"][:], g["T_world_cam"][:])
-
-    @property
-    def start(self) -> int:
-        return int(self.t[0])
-
-    @property
-    def end(self) -> int:
-        return int(self.t[-1])
-
-    def at(self, t_us: np.ndarray | int) -> np.ndarray:
-        """Camera-to-world transforms [..., 4, 4] at the given times (inside the track)."""
-        t_us = np.asarray(t_us, np.int64)
-        if np.any(t_us < self.t[0]) or np.any(t_us > self.t[-1]):
-            raise InputError(
-                f"poses cover {self.t[0]}..{self.t[-1]} us; asked for a time outside them"
-            )
-        i = np.clip(np.searchsorted(self.t, t_us, side="right") - 1, 0, len(self.t) - 2)
-        s = (t_us - self.t[i]).astype(np.float64) / (self.t[i + 1] - self.t[i]).astype(np.float64)
-        out = np.zeros(t_us.shape + (4, 4))
-        out[..., 3, 3] = 1
-        p0, p1 = self.T_world_cam[i, :3, 3], self.T_world_cam[i + 1, :3, 3]
-        out[..., :3, 3] = p0 + s[..., None] * (p1 - p0)
-        out[..., :3, :3] = quat_to_rotmat(slerp(self._q[i], self._q[i + 1], s))
-        return out

@@ -1,0 +1,178 @@
+"""OUT/metrics.json: what a reconstruction found. ``ReconstructionResult`` is its one writer
+(`evcap reconstruct`) and reader (the CLI, the demo, the report, the benches); ``Figures``
+names and describes each accuracy figure once."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from evcap.errors import InputError
+
+RESULT_FILE = "metrics.json"
+Stage = Literal["radiance", "material", "all"]
+STAGE_I, STAGE_II, RUN = "stage I (radiance)", "stage II (material)", "run"
+
+
+def _figure(name: str, unit: str, stage: str):
+    return field(default=None, metadata={"name": name, "unit": unit, "stage": stage})
+
+
+@dataclass
+class Figures:
+    """The accuracy figures on the held-out views (None: not measured, e.g. no truth). Images
+    are compared in sRGB; ``_cc``: after a per-channel gain and offset fitted by least squares;
+    ``object_``: on the object's pixels only."""
+
+    object_psnr_cc: float | None = _figure("object PSNR, color-corrected", "dB", STAGE_I)
+    object_psnr_constant: float | None = _figure(
+        "object PSNR of the best constant color (no object)", "dB", STAGE_I
+    )
+    object_ssim_cc: float | None = _figure("object SSIM, color-corrected", "", STAGE_I)
+    render_psnr: float | None = _figure("render PSNR", "dB", STAGE_I)
+    render_ssim: float | None = _figure("render SSIM", "", STAGE_I)
+    render_psnr_cc: float | None = _figure("render PSNR, color-corrected", "dB", STAGE_I)
+    render_ssim_cc: float | None = _figure("render SSIM, color-corrected", "", STAGE_I)
+    blur_psnr: float | None = _figure(
+        "PSNR of the truth blurred by 25 px (whole image)", "dB", STAGE_I
+    )
+    lpips: float | None = _figure("LPIPS (AlexNet)", "", STAGE_I)
+    depth_rel_err: float | None = _figure("depth error, share of the distance", "", STAGE_I)
+    depth_abs_err: float | None = _figure("depth error, mean absolute", "scene units", STAGE_I)
+    radiance_normal_mae_deg: float | None = _figure("normal error, mean angle", "deg", STAGE_I)
+    # the last stage's normals: stage II's after it, else stage I's
+    normal_mae_deg: float | None = _figure("normal error, mean angle", "deg", STAGE_II)
+    pbr_render_psnr: float | None = _figure("shaded render PSNR", "dB", STAGE_II)
+    pbr_render_ssim: float | None = _figure("shaded render SSIM", "", STAGE_II)
+    pbr_render_psnr_cc: float | None = _figure(
+        "shaded render PSNR, color-corrected", "dB", STAGE_II
+    )
+    pbr_render_ssim_cc: float | None = _figure("shaded render SSIM, color-corrected", "", STAGE_II)
+    base_color_psnr: float | None = _figure("base color PSNR", "dB", STAGE_II)
+    base_color_ssim: float | None = _figure("base color SSIM", "", STAGE_II)
+    base_color_psnr_cc: float | None = _figure("base color PSNR, color-corrected", "dB", STAGE_II)
+    base_color_ssim_cc: float | None = _figure("base color SSIM, color-corrected", "", STAGE_II)
+    base_color_psnr_cc_baseline: float | None = _figure(
+        "stage I's radiance taken as the base color, PSNR color-corrected", "dB", STAGE_II
+    )
+    base_color_psnr_cc_shadow: float | None = _figure("base color PSNR in shadows", "dB", STAGE_II)
+    shadow_share: float | None = _figure("surface in shadow", "fraction", STAGE_II)
+    base_color_psnr_cc_bleeding: float | None = _figure(
+        "base color PSNR where color bleeds", "dB", STAGE_II
+    )
+    bleeding_share: float | None = _figure("surface with color bleeding", "fraction", STAGE_II)
+    roughness_mae: float | None = _figure("roughness error, mean absolute", "", STAGE_II)
+    relit_psnr: float | None = _figure("relit render PSNR", "dB", STAGE_II)
+    relit_ssim: float | None = _figure("relit render SSIM", "", STAGE_II)
+    relit_psnr_cc: float | None = _figure("relit render PSNR, color-corrected", "dB", STAGE_II)
+    relit_ssim_cc: float | None = _figure("relit render SSIM, color-corrected", "", STAGE_II)
+    relit_object_psnr: float | None = _figure("relit object PSNR", "dB", STAGE_II)
+    relit_object_ssim: float | None = _figure("relit object SSIM", "", STAGE_II)
+    relit_object_psnr_cc: float | None = _figure(
+        "relit object PSNR, color-corrected", "dB", STAGE_II
+    )
+    relit_object_ssim_cc: float | None = _figure("relit object SSIM, color-corrected", "", STAGE_II)
+    relit_object_psnr_cc_baseline: float | None = _figure(
+        "the views never relit, object PSNR against the relit truth, color-corrected",
+        "dB",
+        STAGE_II,
+    )
+
+    @classmethod
+    def names(cls) -> tuple[str, ...]:
+        return tuple(f.name for f in dataclasses.fields(cls))
+
+    @classmethod
+    def describe(cls, name: str) -> tuple[str, str, str]:
+        """(readable name, unit, stage) of a figure."""
+        f = {f.name: f for f in dataclasses.fields(cls)}[name]
+        return f.metadata["name"], f.metadata["unit"], f.metadata["stage"]
+
+    def measured(self) -> dict[str, float]:
+        """The figures that were measured, by name, in the order above."""
+        return {k: v for k, v in dataclasses.asdict(self).items() if v is not None}
+
+
+@dataclass
+class ReconstructionResult:
+    """What `evcap reconstruct` found and how it ran; OUT/metrics.json."""
+
+    views: str = ""  # what the figures were measured on
+    figures: Figures = field(default_factory=Figures)
+    preset: str | None = None
+    seed: int | None = None
+    zero_events: str | None = None  # what pixels without events were taken to mean
+    device: str | None = None
+    backend: str | None = None
+    interrupted: bool = False  # by Ctrl-C: what was learnt so far
+    # stage I (radiance)
+    iterations: int | None = None
+    gaussians: int | None = None
+    seconds: float | None = None
+    history: list[dict] = field(default_factory=list)  # figures along the training
+    # stage II (material)
+    material_iterations: int | None = None
+    material_seconds: float | None = None
+    effects: dict[str, bool] | None = None  # each effect and term: modelled or not
+    relit: bool | None = None  # relit under a new light
+    # the training losses along the way, per stage ("radiance", "material")
+    training_log: dict[str, list[dict]] = field(default_factory=dict)
+
+    @property
+    def has_material(self) -> bool:
+        return self.material_iterations is not None
+
+    # -- metrics.json --------------------------------------------------------------------------
+
+    def to_json(self) -> dict:
+        """The flat JSON object of metrics.json: the figures beside the run's fields."""
+        out = {k: v for k, v in vars(self).items() if k != "figures"}
+        out.update(self.figures.measured())
+        return _clean(out)
+
+    @classmethod
+    def from_json(cls, data: dict) -> ReconstructionResult:
+        names = {f.name for f in dataclasses.fields(cls)} - {"figures"}
+        figures = {k: data[k] for k in Figures.names() if k in data}
+        return cls(figures=Figures(**figures), **{k: v for k, v in data.items() if k in names})
+
+    def write(self, out: str | Path) -> Path:
+        path = Path(out) / RESULT_FILE
+        path.write_text(json.dumps(self.to_json(), indent=2) + "\n")
+        return path
+
+    @classmethod
+    def read(cls, out: str | Path) -> ReconstructionResult:
+        """OUT/metrics.json; InputError naming the problem when it is missing or damaged."""
+        path = Path(out) / RESULT_FILE
+        if not path.exists():
+            raise InputError(f"{path} is not there: the reconstruction did not finish")
+        try:
+            data = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise InputError(f"{path} is not readable JSON ({e})") from None
+        if not isinstance(data, dict):
+            raise InputError(f"{path} does not hold a table of results")
+        try:
+            return cls.from_json(data)
+        except TypeError as e:
+            raise InputError(f"{path} is not a reconstruction's result ({e})") from None
+
+
+def _clean(value):
+    """JSON-ready: NaN and infinity as null, numpy scalars as Python's."""
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_clean(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
