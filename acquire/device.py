@@ -362,7 +362,8 @@ class Davis346:
     def start(
         self, *, aps: bool = True, imu: bool = True, transfers: int = 8, transfer_size: int = 8192
     ) -> BulkReader:
-        """The start sequence (davis346-usb.md 2.7); returns the running reader."""
+        """The start sequence (docs/davis346-protocol.md section 2.7); returns the running
+        reader."""
         for address in P.STOP_SEQUENCE:
             self.write_register(*address, 0)
         time.sleep(0.01)  # let the FPGA buffers drain

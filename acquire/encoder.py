@@ -1,7 +1,7 @@
 """Encode events, frames, IMU samples and triggers into the DAVIS346's USB stream format.
 
 The inverse of evcap.acquire.decoder, written from the protocol description
-(davis346-usb.md section 3), not from the decoder: it makes the hardware-replay fixtures
+(docs/davis346-protocol.md section 3), not from the decoder: it makes the hardware-replay fixtures
 (hw-fixtures/) and the streams of the round-trip tests and benchmarks.
 
 Times are host-continuous microseconds, as the decoder gives them. A timestamp reset

@@ -1,5 +1,5 @@
 """The DAVIS346 host protocol: USB identity, vendor requests, register map, bias codes, and the
-default configuration and start/stop sequences (../shared/reference/davis346-usb.md, which cites
+default configuration and start/stop sequences (docs/davis346-protocol.md sections 1 and 2, from
 libcaer 3.3.9 and 3.3.15, jAER and neuromorphic-drivers).
 
 Everything here is data and pure functions; evcap.acquire.device sends it over USB.
@@ -201,7 +201,8 @@ def _cf(param: int, coarse: int, fine: int, n_type: bool = True, **flags: bool) 
     return Bias(param, "coarse_fine", n_type, {"coarse": coarse, "fine": fine, **flags})
 
 
-# libcaer's default DAVIS346 biases (davis-usb.md section 2.5), in the order they are sent.
+# libcaer's default DAVIS346 biases (docs/davis346-protocol.md section 2.5), in the order they are
+# sent.
 BIASES: dict[str, Bias] = {
     "ApsOverflowLevel": Bias(0, "vdac", default={"voltage": 27, "current": 6}),
     "ApsCas": Bias(1, "vdac", default={"voltage": 21, "current": 6}),
@@ -314,7 +315,8 @@ class Clocks:
 
 @dataclass(frozen=True)
 class Settings:
-    """Camera settings beyond the biases; defaults are libcaer's (davis346-usb.md 2.6)."""
+    """Camera settings beyond the biases; defaults are libcaer's (docs/davis346-protocol.md
+    section 2.6)."""
 
     aps_exposure_us: int = 4000  # APS exposure time
     aps_frame_interval_us: int = 40000  # time between APS frames (25 fps)

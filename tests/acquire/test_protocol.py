@@ -1,4 +1,4 @@
-"""The protocol tables against the byte-exact values of davis346-usb.md (libcaer's)."""
+"""The protocol tables against the byte-exact values of docs/davis346-protocol.md (libcaer's)."""
 
 import pytest
 
@@ -6,7 +6,7 @@ from evcap.acquire import protocol as P
 from evcap.acquire.bias_file import bias_codes, load_bias_file
 from evcap.errors import InputError
 
-# libcaer's default DAVIS346 bias codes (davis346-usb.md 2.5).
+# libcaer's default DAVIS346 bias codes (docs/davis346-protocol.md section 2.5).
 DEFAULT_CODES = {
     "ApsOverflowLevel": 0x019B,
     "ApsCas": 0x0195,
@@ -61,7 +61,7 @@ def test_bias_encodings():
 
 
 def test_multiple_write_packing_matches_the_timestamp_reset_example():
-    # davis346-usb.md 2.1: data 00 02 00 00 00 01  00 02 00 00 00 00 (MUX param 2: 1 then 0)
+    # the timestamp reset of docs/davis346-protocol.md section 2.1 (MUX param 2: 1, then 0)
     data = P.pack_multiple([(0, 2, 1), (0, 2, 0)])
     assert data == bytes.fromhex("000200000001000200000000")
 
