@@ -15,7 +15,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -29,6 +28,7 @@ SAMPLE = (
 def against_truth(path: Path, frames: bool) -> dict:
     """Calibrate the session (or a copy without its frames) and compare with its /gt."""
     from evcap.calib.calibrate import calibrate
+    from evcap.records import GroundTruth
     from evcap.session import Session, SessionWriter
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -44,43 +44,42 @@ def against_truth(path: Path, frames: bool) -> dict:
         t0 = time.perf_counter()
         cal = calibrate(path_used)
         seconds = time.perf_counter() - t0
-    with h5py.File(path, "r") as f:
-        g = f["gt"]
-        K = g["K"][()]
-        on_t, off_t = g["threshold_on"][()], g["threshold_off"][()]
-        hot_t = np.zeros(on_t.size, bool)
-        hot_t[g.attrs["hot_pixels"]] = True
-        effects = json.loads(f.attrs["effects"])
-    hot = cal.noise.hot_pixels.ravel()
+    with Session.open(path) as s:
+        truth = GroundTruth.read(s)
+        effects = json.loads(s.attrs["effects"])
+    K, on_t, off_t = truth.K, truth.threshold_on, truth.threshold_off
+    hot_t = np.zeros(on_t.size, bool)
+    hot_t[truth.hot_pixels] = True
+    est = cal.record()
+    hot = est.hot().ravel()
     tp = int((hot & hot_t).sum())
     ba = effects.get("background_activity", {}).get("rate_hz", 0.0)
     shot = effects.get("shot_noise", {}).get("rate_hz", 0.0)
     prefix = "aps" if frames else "events_only"
     out = {
         f"{prefix}_seconds": seconds,
-        f"{prefix}_fx_err_pct": 100 * float(cal.K[0, 0] / K[0, 0] - 1),
-        f"{prefix}_fy_err_pct": 100 * float(cal.K[1, 1] / K[1, 1] - 1),
-        f"{prefix}_cx_err_pct": 100 * float(cal.K[0, 2] / K[0, 2] - 1),
-        f"{prefix}_cy_err_pct": 100 * float(cal.K[1, 2] / K[1, 2] - 1),
-        f"{prefix}_rms_reprojection_px": cal.rms_reprojection_px,
+        f"{prefix}_fx_err_pct": 100 * float(est.K[0, 0] / K[0, 0] - 1),
+        f"{prefix}_fy_err_pct": 100 * float(est.K[1, 1] / K[1, 1] - 1),
+        f"{prefix}_cx_err_pct": 100 * float(est.K[0, 2] / K[0, 2] - 1),
+        f"{prefix}_cy_err_pct": 100 * float(est.K[1, 2] / K[1, 2] - 1),
+        f"{prefix}_rms_reprojection_px": est.rms_reprojection_px,
         f"{prefix}_views_used": len(cal.intrinsics.per_view) if cal.intrinsics else 0,
         f"{prefix}_hot_precision": tp / max(int(hot.sum()), 1),
         f"{prefix}_hot_recall": tp / max(int(hot_t.sum()), 1),
-        f"{prefix}_background_activity_hz": cal.noise.background_activity_hz,
-        f"{prefix}_shot_noise_hz": cal.noise.shot_noise_hz,
-        f"{prefix}_refractory_us": cal.noise.refractory_period_us,
+        f"{prefix}_background_activity_hz": est.background_activity_hz,
+        f"{prefix}_shot_noise_hz": est.shot_noise_hz,
+        f"{prefix}_refractory_us": est.refractory_period_us,
         "true_background_activity_hz": ba,
         "true_shot_noise_hz": shot,
         "true_refractory_us": effects.get("refractory", {}).get("period_us", 0),
     }
     if cal.thresholds is not None:
-        good = cal.thresholds.confidence >= 0.5
-        err = np.concatenate([(cal.threshold_on - on_t)[good], (cal.threshold_off - off_t)[good]])
+        on, off = est.thresholds()
+        good = est.threshold_confidence >= 0.5
+        err = np.concatenate([(on - on_t)[good], (off - off_t)[good]])
         out[f"{prefix}_threshold_rmse_confident"] = float(np.sqrt(np.mean(err**2)))
         out[f"{prefix}_threshold_confident_share"] = float(good.mean())
-        allerr = np.concatenate(
-            [(cal.threshold_on - on_t).ravel(), (cal.threshold_off - off_t).ravel()]
-        )
+        allerr = np.concatenate([(on - on_t).ravel(), (off - off_t).ravel()])
         out[f"{prefix}_threshold_rmse_all"] = float(np.sqrt(np.mean(allerr**2)))
     return out
 
@@ -96,20 +95,16 @@ def real_recording(aedat4: Path) -> dict:
         t0 = time.perf_counter()
         cal = calibrate(path, skip=frozenset({"intrinsics"}))
         seconds = time.perf_counter() - t0
-    n = cal.noise
+    est = cal.record()
+    on, off = est.thresholds()
     return {
         "real_seconds": seconds,
-        "real_hot_pixels": int(n.hot_pixels.sum()),
-        "real_background_activity_hz": n.background_activity_hz,
-        "real_shot_noise_hz": n.shot_noise_hz,
-        "real_refractory_us": n.refractory_period_us,
-        "real_threshold_confident_share": float((cal.thresholds.confidence >= 0.5).mean())
-        if cal.thresholds
-        else 0.0,
-        "real_thresholds_on_off_mean": [
-            float(cal.threshold_on.mean()),
-            float(cal.threshold_off.mean()),
-        ],
+        "real_hot_pixels": int(est.hot().sum()),
+        "real_background_activity_hz": est.background_activity_hz,
+        "real_shot_noise_hz": est.shot_noise_hz,
+        "real_refractory_us": est.refractory_period_us,
+        "real_threshold_confident_share": float((est.threshold_confidence >= 0.5).mean()),
+        "real_thresholds_on_off_mean": [float(on.mean()), float(off.mean())],
     }
 
 

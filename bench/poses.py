@@ -25,33 +25,35 @@ def poses_against_truth(path: Path, work: Path, kind: str, gyro: bool) -> tuple[
     """Estimate the poses of a copy of the session; errors after a similarity alignment.
     Returns the figures and the copy, whose /poses then holds the aligned estimate."""
     from evcap.poses.align import align_similarity, apply_similarity, pose_errors
-    from evcap.poses.estimate import estimate_poses, write_poses
+    from evcap.poses.estimate import estimate_poses
     from evcap.records import Poses
     from evcap.session import Session
 
     copy = work / f"{path.stem}_{kind}.h5"
     shutil.copy(path, copy)
     with Session.open(path) as s:
-        truth = Poses.read(s)
+        truth = Poses.read(s)  # a simulated session's /poses: the true path, densely sampled
     t0 = time.perf_counter()
     result = estimate_poses(copy, kind=kind, gyro=gyro)
     seconds = time.perf_counter() - t0
-    inside = (result.t_us >= truth.start) & (result.t_us <= truth.end)
-    T_true = truth.at(result.t_us[inside])
-    T_est = result.T_world_cam[inside]
+    estimate = result.record()
+    inside = (estimate.t >= truth.start) & (estimate.t <= truth.end)
+    T_true = truth.at(estimate.t[inside])
+    T_est = estimate.T_world_cam[inside]
     errors = pose_errors(T_est, T_true)
     by_poses = pose_errors(T_est, T_true, by="poses")
     np.savez(
         RESULTS / f"poses_{path.stem}_{kind}.npz",
-        t_us=result.t_us[inside],
+        t_us=estimate.t[inside],
         T_est=T_est,
         T_true=T_true,
     )
     s_, R, t = align_similarity(T_est[:, :3, 3], T_true[:, :3, 3])
-    result.T_world_cam = apply_similarity(result.T_world_cam, s_, R, t)
-    if result.points_xyz is not None:
-        result.points_xyz = s_ * result.points_xyz @ R.T + t
-    write_poses(copy, result)
+    points = estimate.points_xyz
+    estimate.replace(
+        T_world_cam=apply_similarity(estimate.T_world_cam, s_, R, t),
+        points_xyz=None if points is None else s_ * points @ R.T + t,
+    ).write(copy)
     name = f"{path.stem}_{kind}" + ("" if gyro else "_no_gyro")
     figures = {
         f"{name}_orientations": result.turned,

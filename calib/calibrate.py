@@ -4,6 +4,7 @@ the session's /calibration group with the biases it was measured under."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from collections.abc import Callable
@@ -17,8 +18,9 @@ from evcap.calib.intrinsics import IntrinsicsResult, calibrate_intrinsics
 from evcap.calib.noise import NoiseStats, measure_noise
 from evcap.calib.thresholds import DATASHEET_THRESHOLDS, ThresholdFit, fit_thresholds
 from evcap.errors import CalibrationError, InputError
-from evcap.records import read_intrinsics
-from evcap.session import Session, write_group
+from evcap.records import Calibration
+from evcap.records.calibration import BoardViews
+from evcap.session import Session
 
 SKIPPABLE = ("intrinsics", "thresholds")  # the noise is always measured: it finds the hot pixels
 # Frames of the board made from the events when the recording has no APS frames: rate and
@@ -32,8 +34,8 @@ UNCERTAIN_F = 0.005  # a focal length standard deviation above this share gets a
 
 
 @dataclass
-class Calibration:
-    """What a calibration holds; `datasets()` and `attrs()` are the /calibration group."""
+class CalibrationRun:
+    """What `evcap calibrate` measured and what it rests on; `record()` is what it writes."""
 
     width: int
     height: int
@@ -56,27 +58,59 @@ class Calibration:
     def rms_reprojection_px(self) -> float:
         return float(self.intrinsics.rms_px) if self.intrinsics else float("nan")
 
-    def datasets(self) -> dict[str, np.ndarray]:
-        h, w = self.height, self.width
-        out = {
-            "threshold_on": self.threshold_on.astype(np.float32),
-            "threshold_off": self.threshold_off.astype(np.float32),
-            "hot_pixels": self.noise.hot_pixels.astype(np.uint8),
-            "event_rate_hz": self.noise.rate_hz.astype(np.float32),
+    def record(self) -> Calibration:
+        """The session's /calibration: the measurement, with how each part was measured in its
+        notes."""
+        n = self.noise
+        notes: dict = {
+            "intrinsics_source": self.intrinsics_source,
+            "threshold_source": self.threshold_source,
+            "intrinsics_std_px": self.intrinsics.std if self.intrinsics else np.full(4, np.nan),
+            "biases": json.dumps(self.biases) if self.biases is not None else "not recorded",
         }
-        if self.K is not None:
-            out["K"] = np.asarray(self.K, np.float64)
-            out["dist"] = np.asarray(self.dist, np.float64)
-        if self.threshold_confidence is not None:
-            out["threshold_confidence"] = self.threshold_confidence.astype(np.float32)
-        else:
-            out["threshold_confidence"] = np.zeros((h, w), np.float32)
+        if self.board is not None:
+            notes["board"] = json.dumps(self.board.to_attrs())
+        views = None
         if self.intrinsics is not None:
-            v = self.intrinsics.per_view
-            out["view_t"] = np.array([row[0] for row in v], np.int64)
-            out["view_rms_px"] = np.array([row[1] for row in v], np.float64)
-            out["view_corners"] = np.array([row[2] for row in v], np.int64)
-        return out
+            notes["rejected_views"] = json.dumps(
+                [{"t_us": int(t), "reason": r} for t, r in self.intrinsics.rejected]
+            )
+            per_view = self.intrinsics.per_view
+            views = BoardViews(
+                t_us=np.array([v[0] for v in per_view], np.int64),
+                rms_px=np.array([v[1] for v in per_view], np.float64),
+                corners=np.array([v[2] for v in per_view], np.int64),
+            )
+        if self.thresholds is not None:
+            t = self.thresholds
+            notes["threshold_channel_means"] = json.dumps(
+                {k: [float(v[0]), float(v[1])] for k, v in t.channel_means.items()}
+            )
+            notes["threshold_confident_share"] = float((t.confidence >= 0.5).mean())
+        if self.warnings:
+            notes["warnings"] = json.dumps(self.warnings)
+        confidence = self.threshold_confidence
+        if confidence is None:  # not fitted: no pixel is known well
+            confidence = np.zeros((self.height, self.width), np.float32)
+        return Calibration(
+            width=self.width,
+            height=self.height,
+            source="evcap calibrate",
+            K=self.K,
+            distortion_model=self.distortion_model,
+            dist=self.dist,
+            threshold_on=self.threshold_on,
+            threshold_off=self.threshold_off,
+            threshold_confidence=confidence,
+            hot_pixels=n.hot_pixels,
+            event_rate_hz=n.rate_hz,
+            views=views,
+            rms_reprojection_px=self.rms_reprojection_px,
+            refractory_period_us=float(n.refractory_period_us),
+            background_activity_hz=float(n.background_activity_hz),
+            shot_noise_hz=float(n.shot_noise_hz),
+            notes=notes,
+        )
 
     def summary(self) -> str:
         """What was measured, for a person, a few lines."""
@@ -121,39 +155,6 @@ class Calibration:
         lines += [f"warning: {w}" for w in self.warnings]
         return "\n".join(lines)
 
-    def attrs(self) -> dict:
-        n = self.noise
-        a = {
-            "source": "evcap calibrate",
-            "distortion_model": self.distortion_model,
-            "width": self.width,
-            "height": self.height,
-            "intrinsics_source": self.intrinsics_source,
-            "threshold_source": self.threshold_source,
-            "rms_reprojection_px": self.rms_reprojection_px,
-            "intrinsics_std_px": (self.intrinsics.std if self.intrinsics else np.full(4, np.nan)),
-            "refractory_period_us": float(n.refractory_period_us),
-            "background_activity_hz": float(n.background_activity_hz),
-            "shot_noise_hz": float(n.shot_noise_hz),
-            "hot_pixel_count": int(n.hot_pixels.sum()),
-            "biases": json.dumps(self.biases) if self.biases is not None else "not recorded",
-        }
-        if self.board is not None:
-            a["board"] = json.dumps(self.board.to_attrs())
-        if self.intrinsics is not None:
-            a["rejected_views"] = json.dumps(
-                [{"t_us": int(t), "reason": r} for t, r in self.intrinsics.rejected]
-            )
-        if self.thresholds is not None:
-            t = self.thresholds
-            a["threshold_channel_means"] = json.dumps(
-                {k: [float(v[0]), float(v[1])] for k, v in t.channel_means.items()}
-            )
-            a["threshold_confident_share"] = float((t.confidence >= 0.5).mean())
-        if self.warnings:
-            a["warnings"] = json.dumps(self.warnings)
-        return a
-
 
 def calibrate(
     path: str | Path,
@@ -162,7 +163,7 @@ def calibrate(
     skip: frozenset[str] = frozenset(),
     say: Callable[[str], None] = lambda line: None,
     progress: Callable[[int, int, str], None] | None = None,
-) -> Calibration:
+) -> CalibrationRun:
     """Measure what the session at ``path`` allows. ``skip``: parts of SKIPPABLE not to measure
     (what the session's /calibration already holds is kept for them). ``progress(done, total,
     stage)`` follows the thresholds' fit and the board's detection."""
@@ -176,7 +177,7 @@ def calibrate(
         sensor = s.sensor
         events = s.events()
         frames = s.frames()
-        old = _stored(s)
+        old = _stored(s) if skip else None
         biases, changed = _biases(s)
     w, h = sensor.width, sensor.height
     if len(events) < MIN_EVENTS:
@@ -195,9 +196,10 @@ def calibrate(
     noise = measure_noise(events, frames if len(frames) else None)
 
     cal_thresholds = None
-    if "thresholds" in skip and old.get("threshold_on") is not None:
-        on, off, t_source = old["threshold_on"], old["threshold_off"], old["threshold_source"]
-        confidence = old.get("threshold_confidence")
+    kept = old is not None and old.threshold_on is not None and old.threshold_off is not None
+    if "thresholds" in skip and kept:
+        on, off = old.thresholds()
+        t_source, confidence = f"kept ({old.source})", old.threshold_confidence
     elif "thresholds" not in skip and len(frames) >= 3:
         say(f"thresholds: {len(frames)} APS frames against {len(events):,} events")
         cal_thresholds = fit_thresholds(
@@ -219,13 +221,15 @@ def calibrate(
 
     intrinsics = None
     if "intrinsics" in skip:
-        if old.get("K") is None:
+        if old is not None and old.K is not None:
+            K, model, dist = old.intrinsics()
+            i_source = f"kept ({old.source})"
+        else:
             warnings.append(
                 "no intrinsics (none measured, none stored before): calibrate a recording of "
                 "the board and pass this session to its --apply-to"
             )
-        K, dist, model = old.get("K"), old.get("dist", np.zeros(0)), old.get("model", "none")
-        i_source = old.get("intrinsics_source", "not measured")
+            K, model, dist, i_source = None, "none", np.zeros(0), "not measured"
     else:
         if len(frames):
             say(f"intrinsics: the board in {len(frames)} APS frames")
@@ -253,7 +257,7 @@ def calibrate(
                 f"the views leave the focal length uncertain by {spread:.1%}: move the board "
                 "over the whole image, nearer and farther, tilted up to 45 degrees"
             )
-    return Calibration(
+    return CalibrationRun(
         width=w,
         height=h,
         K=K,
@@ -283,17 +287,19 @@ def check_targets(paths: list[str | Path]) -> None:
             raise InputError(f"{path}: no permission to write to it")
 
 
-def write_calibration(paths: list[str | Path], cal: Calibration) -> None:
+def write_calibration(paths: list[str | Path], cal: CalibrationRun) -> None:
     """Replace the sessions' /calibration with ``cal``, after checking every one of them
     against it (its sensor size), so that a bad target leaves all of them as they were."""
     check_targets(paths)
-    attrs = [_calibration_attrs(path, cal) for path in paths]
-    for path, a in zip(paths, attrs, strict=True):
-        write_group(path, "calibration", cal.datasets(), a, replace=True)
+    record = cal.record()
+    records = [_for_target(path, cal, record) for path in paths]
+    for path, r in zip(paths, records, strict=True):
+        r.write(path, replace=True)
 
 
-def _calibration_attrs(path: str | Path, cal: Calibration) -> dict:
-    """``cal``'s attributes as written to the session ``path`` (checked against its sensor)."""
+def _for_target(path: str | Path, cal: CalibrationRun, record: Calibration) -> Calibration:
+    """``record`` as written to the session ``path`` (checked against its sensor), warning
+    when that session was recorded under other biases."""
     with Session.open(path) as s:
         size = (s.sensor.width, s.sensor.height)
         biases, _ = _biases(s)
@@ -302,33 +308,16 @@ def _calibration_attrs(path: str | Path, cal: Calibration) -> dict:
             f"{path}: its sensor is {size[0]} x {size[1]}, the calibration is for "
             f"{cal.width} x {cal.height}"
         )
-    attrs = cal.attrs()
-    if cal.biases is not None and biases is not None and biases != cal.biases:
-        differ = sorted(
-            k for k in set(biases) | set(cal.biases) if biases.get(k) != cal.biases.get(k)
-        )
-        attrs["warnings"] = json.dumps(
-            [*cal.warnings, f"{path} was recorded under other biases ({', '.join(differ)})"]
-        )
-    return attrs
+    if cal.biases is None or biases is None or biases == cal.biases:
+        return record
+    differ = sorted(k for k in set(biases) | set(cal.biases) if biases.get(k) != cal.biases.get(k))
+    warnings = [*cal.warnings, f"{path} was recorded under other biases ({', '.join(differ)})"]
+    return dataclasses.replace(record, notes={**record.notes, "warnings": json.dumps(warnings)})
 
 
-def _stored(s: Session) -> dict:
-    """What the session's /calibration holds now (kept for the parts not measured)."""
-    if "calibration" not in s.groups:
-        return {}
-    g = s.group("calibration")
-    out = {}
-    if "K" in g:
-        out["K"], out["model"], out["dist"] = read_intrinsics(s)
-        out["intrinsics_source"] = f"kept ({g.attrs.get('source', 'unknown')})"
-    if "threshold_on" in g and "threshold_off" in g:
-        out["threshold_on"] = g["threshold_on"][()]
-        out["threshold_off"] = g["threshold_off"][()]
-        out["threshold_source"] = f"kept ({g.attrs.get('source', 'unknown')})"
-        if "threshold_confidence" in g:
-            out["threshold_confidence"] = g["threshold_confidence"][()]
-    return out
+def _stored(s: Session) -> Calibration | None:
+    """The session's /calibration now (kept for the parts not measured), or None."""
+    return Calibration.read(s) if Calibration.present(s) else None
 
 
 def _biases(s: Session) -> tuple[dict | None, list[str]]:

@@ -10,7 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from evcap.calib.calibrate import Calibration
+from evcap.calib.calibrate import CalibrationRun
 from evcap.errors import InputError
 
 SCALE = 2  # sensor pixels are drawn as SCALE x SCALE blocks
@@ -58,7 +58,7 @@ def _threshold_panel(name: str, m: np.ndarray, confident: np.ndarray | None) -> 
     )
 
 
-def _rate_panel(cal: Calibration) -> np.ndarray:
+def _rate_panel(cal: CalibrationRun) -> np.ndarray:
     rate = np.log10(np.maximum(cal.noise.rate_hz, 1e-3))
     lo, hi = np.percentile(rate, [1, 99.9])
     body = _colored(rate, lo, hi)
@@ -69,7 +69,7 @@ def _rate_panel(cal: Calibration) -> np.ndarray:
     return _panel(f"event rate, {n} hot pixels circled", body, (lo, hi, "log10 Hz"))
 
 
-def _views_panel(cal: Calibration, w: int, h: int) -> np.ndarray:
+def _views_panel(cal: CalibrationRun, w: int, h: int) -> np.ndarray:
     """Reprojection RMS of each view used, as bars over time."""
     body = np.full((h, w, 3), 255, np.uint8)
     i = cal.intrinsics
@@ -97,7 +97,7 @@ def _views_panel(cal: Calibration, w: int, h: int) -> np.ndarray:
     return _panel("reprojection error per view (px)", body, None)
 
 
-def write_report(cal: Calibration, path: str | Path) -> None:
+def write_report(cal: CalibrationRun, path: str | Path) -> None:
     """Write the maps of ``cal`` to ``path`` (PNG)."""
     c = cal.threshold_confidence
     confident = None if c is None else c >= 0.5

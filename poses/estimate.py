@@ -1,7 +1,7 @@
 """`evcap poses`: the camera's path from the events alone. Frames are made from the events
 (poses/frames.py), structure from motion runs on them with the calibrated intrinsics fixed
-(poses/sfm.py), and the registered frames' camera-to-world transforms are written to /poses,
-where the reconstruction interpolates them at any time (poses/track.py)."""
+(poses/sfm.py), and the registered frames' camera-to-world transforms are written to /poses
+(the Poses record, which the reconstruction interpolates at any time)."""
 
 from __future__ import annotations
 
@@ -18,8 +18,8 @@ from evcap.poses.gravity import Gravity, gravity_up, level, level_rotation
 from evcap.poses.gyro import GyroFit, fit_gyro
 from evcap.poses.refine import Refined, refine_positions
 from evcap.poses.sfm import SfmResult, run_sfm
-from evcap.records import Poses, read_intrinsics
-from evcap.session import Session, write_group
+from evcap.records import Calibration, Poses
+from evcap.session import Session
 from evcap.streams import Frames, ImuSamples
 
 MIN_EVENTS = 10_000
@@ -51,6 +51,26 @@ class PosesResult:
     points_xyz: np.ndarray | None = None  # [P, 3] the model's points, in the poses' world
     gyro: GyroFit | None = None  # when the orientations are the gyroscope's
     refined: Refined | None = None  # the positions adjusted to the gyroscope's orientations
+
+    def record(self) -> Poses:
+        """The /poses record of the estimate: the registered frames' transforms and points,
+        with how they were found in its notes."""
+        return Poses(
+            self.t_us,
+            self.T_world_cam,
+            source=f"evcap poses ({self.kind} frames, pycolmap)",
+            scale="arbitrary (structure from motion: no metric scale)",
+            points_xyz=self.points_xyz,
+            notes={
+                "up": self.up,
+                "orientations": self.turned,
+                "registered": self.registered,
+                "frames": self.frames,
+                "rate_hz": self.rate_hz,
+                "mean_reprojection_px": self.mean_reprojection_px,
+                "points": self.points,
+            },
+        )
 
     @property
     def registered(self) -> int:
@@ -104,16 +124,15 @@ def estimate_poses(
     them (`aps_frames_usable`). ``threads``: structure from motion's (see run_sfm)."""
 
     with Session.open(path) as s:
-        K, model, dist = read_intrinsics(s)
+        cal = Calibration.read(s)
+        K, model, dist = cal.intrinsics(str(path))
         if model not in ("none", "radtan"):
             raise InputError(f"{path}: structure from motion takes radtan distortion only")
-        g = s.group("calibration")
-        on = g["threshold_on"][()] if "threshold_on" in g else 0.2
-        off = g["threshold_off"][()] if "threshold_off" in g else 0.2
-        hot = g["hot_pixels"][()].astype(bool) if "hot_pixels" in g else None
         events = s.events()
         frames = s.frames()
         imu = s.imu()
+    on = cal.threshold_on if cal.threshold_on is not None else 0.2
+    off = cal.threshold_off if cal.threshold_off is not None else 0.2
     if len(events) < MIN_EVENTS:
         raise InputError(
             f"{path}: {len(events):,} events; poses from events need at least {MIN_EVENTS:,} "
@@ -141,7 +160,7 @@ def estimate_poses(
         weights=weights,
         threshold_on=on,
         threshold_off=off,
-        hot_pixels=hot,
+        hot_pixels=cal.hot_pixels,
         aps=frames if with_aps else None,
         progress=(lambda done, total: progress(done, total, "frames")) if progress else None,
     )
@@ -227,28 +246,7 @@ def aps_frames_usable(frames: Frames, imu: ImuSamples) -> tuple[bool, str]:
 
 def write_poses(path: str | Path, result: PosesResult) -> None:
     """Replace the session's /poses with ``result``."""
-    arrays = {"t": result.t_us, "T_world_cam": result.T_world_cam}
-    if result.points_xyz is not None:
-        arrays["points_xyz"] = result.points_xyz
-    write_group(
-        path,
-        "poses",
-        arrays,
-        {
-            "source": f"evcap poses ({result.kind} frames, pycolmap)",
-            "frame": "camera-to-world, OpenCV camera axes",
-            "interpolation": "linear position, slerp rotation",
-            "scale": "arbitrary (structure from motion: no metric scale)",
-            "up": result.up,
-            "orientations": result.turned,
-            "registered": result.registered,
-            "frames": result.frames,
-            "rate_hz": result.rate_hz,
-            "mean_reprojection_px": result.mean_reprojection_px,
-            "points": result.points,
-        },
-        replace=True,
-    )
+    result.record().write(path)
 
 
 def write_frames(images: np.ndarray, times_us: np.ndarray, folder: str | Path) -> None:

@@ -3,14 +3,16 @@ group it writes, --apply-to, --report, --print-board, the errors a person meets,
 simulator taking a measured sensor."""
 
 import json
+import shutil
 
 import h5py
 import numpy as np
 import pytest
 
-from evcap.calib.calibrate import calibrate
+from evcap.calib.calibrate import SKIPPABLE, calibrate, write_calibration
 from evcap.cli import main
 from evcap.errors import CalibrationError
+from evcap.records import Calibration
 from evcap.session import SensorInfo, Session, SessionWriter
 from evcap.sim.scene import load_scene
 from evcap.sim.simulate import simulate
@@ -149,6 +151,26 @@ def test_without_frames_thresholds_balance_the_counts_and_noise_is_measured(
     assert any("no APS frames" in w for w in cal.warnings)
     hot_true = truth(board_session)[3]
     assert (cal.noise.hot_pixels == hot_true).all()
+
+
+def test_skipped_parts_keep_what_the_session_held(board_session, tmp_path):
+    """What is skipped is kept from the session's calibration (here the simulator's truth) and
+    written again beside the noise measured anew."""
+    session = shutil.copy(board_session, tmp_path / "s.h5")
+    with Session.open(session) as s:
+        before = Calibration.read(s)
+    cal = calibrate(session, skip=frozenset(SKIPPABLE))
+    assert cal.intrinsics_source == cal.threshold_source == f"kept ({before.source})"
+    write_calibration([session], cal)
+    with Session.open(session) as s:
+        after = Calibration.read(s)
+    assert after.source == "evcap calibrate"
+    assert after.notes["intrinsics_source"] == cal.intrinsics_source
+    assert np.array_equal(after.K, before.K) and np.array_equal(after.dist, before.dist)
+    assert after.distortion_model == before.distortion_model
+    assert np.array_equal(after.threshold_on, before.threshold_on)
+    assert np.array_equal(after.threshold_off, before.threshold_off)
+    assert np.array_equal(after.hot(), cal.noise.hot_pixels)
 
 
 def test_print_board_alone(tmp_path, capsys):
