@@ -77,8 +77,8 @@ def main() -> None:
                 session, base, preset=args.preset, device=args.device, stage="radiance"
             )
             stage_one[scene] = {
-                "render_psnr_cc": first.get("render_psnr_cc"),
-                "normal_mae_deg": first.get("normal_mae_deg"),
+                "render_psnr_cc": first.figures.render_psnr_cc,
+                "normal_mae_deg": first.figures.normal_mae_deg,
                 "seconds": time.perf_counter() - started,
             }
             full_effects = None
@@ -100,9 +100,10 @@ def main() -> None:
                     **settings,
                 )
                 if name == "full":
-                    full_effects = result["effects"]
-                on = ",".join(k for k, v in result["effects"].items() if v)
-                row = {"scene": scene, "variant": name, **result, "effects": on}
+                    full_effects = result.effects
+                on = ",".join(k for k, v in result.effects.items() if v)
+                found = {k: v for k, v in result.to_json().items() if k != "training_log"}
+                row = {"scene": scene, "variant": name, **found, "effects": on}
                 rows.append(row)
                 print(" ".join(f"{c}={cell(row.get(c))}" for c in COLUMNS), flush=True)
     lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]

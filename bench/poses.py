@@ -76,9 +76,9 @@ def reconstruction_difference(true_session: Path, estimated: Path, work: Path) -
 
     out = {}
     for name, session in (("true", true_session), ("estimated", estimated)):
-        m = reconstruct(session, work / f"recon_{name}", preset="tiny", stage="radiance")
+        f = reconstruct(session, work / f"recon_{name}", preset="tiny", stage="radiance").figures
         for key in ("object_psnr_cc", "object_psnr_constant", "normal_mae_deg", "render_psnr_cc"):
-            out[f"recon_{name}_poses_{key}"] = m.get(key)
+            out[f"recon_{name}_poses_{key}"] = getattr(f, key)
     out["recon_object_psnr_cc_loss_db"] = (
         out["recon_true_poses_object_psnr_cc"] - out["recon_estimated_poses_object_psnr_cc"]
     )

@@ -26,10 +26,10 @@ import numpy as np
 import torch
 from _common import RESULTS, report, session_of
 
-from evcap.recon.evaluate import test_views
 from evcap.recon.export import load_checkpoint
 from evcap.recon.optics import SensorOptics
 from evcap.recon.rasterize import Camera, rasterize
+from evcap.records import GroundTruth
 from evcap.session import Session
 
 # (field, width, height, Gaussians, channels): the fast preset's size, the sensor's, the method's
@@ -55,7 +55,7 @@ def trained(n: int, width: int, height: int, channels: int, seed: int = 0):
         reconstruct(session, out, preset="fast", stage="radiance", overwrite=True)
     field, _ = load_checkpoint(Path(checkpoint))
     with Session.open(session) as s:
-        poses, _ = test_views(s)
+        poses = GroundTruth.read(s).held_out_views().T_world_cam
         optics = SensorOptics.from_session(s)
     g = field.gaussians
     keep = torch.randperm(len(g), generator=torch.Generator().manual_seed(seed))[:n]

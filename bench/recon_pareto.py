@@ -53,10 +53,12 @@ def is_fast(row: dict) -> bool:
 
 
 def run_one(session: Path, preset: str, device: str, **overrides: object) -> dict:
+    """Stage I's result as a row: its figures beside the run's fields (no training log)."""
     with tempfile.TemporaryDirectory() as out:
-        return reconstruct(
+        result = reconstruct(
             session, out, preset=preset, device=device, stage="radiance", **overrides
         )
+    return {k: v for k, v in result.to_json().items() if k != "training_log"}
 
 
 def plot(rows: list[dict], path: Path) -> None:

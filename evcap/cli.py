@@ -14,6 +14,15 @@ from pathlib import Path
 
 from evcap import __version__
 from evcap.errors import EvcapError, InputError, OutputExistsError
+from evcap.recon.config import (
+    ABLATION_FLAGS,
+    BACKENDS,
+    DEVICES,
+    EFFECT_MODES,
+    PRESET_NAMES,
+    STAGES,
+    ZERO_EVENTS,
+)
 
 
 def _cmd_import(args: argparse.Namespace) -> int:
@@ -289,20 +298,20 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
             progress=update,
         )
     stopped = ""
-    if result.get("interrupted"):
+    if result.interrupted:
         stopped = " (interrupted: what was learnt so far; the same command goes on from there)"
     if args.stage != "material":
         print(
-            f"{args.output}: {result['gaussians']:,} Gaussians after {result['iterations']:,} "
-            f"steps in {result['seconds']:.0f} s on {result['device']}{stopped}"
+            f"{args.output}: {result.gaussians:,} Gaussians after {result.iterations:,} "
+            f"steps in {result.seconds:.0f} s on {result.device}{stopped}"
         )
-    if "material_seconds" in result:
-        on = [k for k, v in result["effects"].items() if v]
+    if result.has_material:
+        on = [k for k, v in (result.effects or {}).items() if v]
         print(
-            f"{args.output}: material after {result['material_iterations']:,} steps in "
-            f"{result['material_seconds']:.0f} s (with {', '.join(on) or 'nothing else'}){stopped}"
+            f"{args.output}: material after {result.material_iterations:,} steps in "
+            f"{result.material_seconds:.0f} s (with {', '.join(on) or 'nothing else'}){stopped}"
         )
-    keys = (
+    shown = (
         "object_psnr_cc",
         "object_psnr_constant",
         "normal_mae_deg",
@@ -316,7 +325,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         "relit_object_psnr_cc",
         "relit_object_psnr_cc_baseline",
     )
-    figures = "  ".join(f"{k} {result[k]:.3f}" for k in keys if result.get(k) is not None)
+    measured = result.figures.measured()
+    figures = "  ".join(f"{k} {measured[k]:.3f}" for k in shown if k in measured)
     if figures:
         print(f"held-out views: {figures}")
     return 0
@@ -397,10 +407,6 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     run_demo(args.output, preset=args.preset, fixtures=args.fixtures, force=args.force)
     return 0
-
-
-# --without: the switches of the method's ablations
-ABLATION_FLAGS = {"anchor": "anchor", "edge-tv": "tv", "distillation": "distill"}
 
 
 def _capture_arguments(p: argparse.ArgumentParser) -> None:
@@ -653,21 +659,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--stage",
         default="all",
-        choices=["radiance", "material", "all"],
+        choices=STAGES,
         help="radiance: stage I (geometry, radiance); material: stage II (base color, "
         "roughness, normals, light) from OUT's stage-I checkpoint; all: both (default)",
     )
     p.add_argument(
         "--preset",
         default="fast",
-        choices=["tiny", "fast", "paper"],
+        choices=PRESET_NAMES,
         help="tiny: a smoke test; fast: minutes on a laptop CPU (default); paper: the method's "
         "reference run, for a GPU",
     )
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="default: cpu")
+    p.add_argument("--device", default="cpu", choices=DEVICES, help="default: cpu")
     p.add_argument(
         "--backend",
-        choices=["cpu", "torch", "gsplat"],
+        choices=BACKENDS,
         help="the rasterizer: cpu (compiled, the default on the CPU), torch (the pure-PyTorch "
         "reference, any device), gsplat (CUDA; the default on cuda when it is installed)",
     )
@@ -678,14 +684,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument(
         "--zero-events",
-        choices=["target", "bound"],
+        choices=ZERO_EVENTS,
         help="a pixel without events means no change (target) or |change| < C (bound)",
     )
     p.add_argument("--material-iterations", type=int, metavar="N", help="stage II steps")
     for effect, what in (("visibility", "shadows"), ("indirect", "light from other surfaces")):
         p.add_argument(
             f"--{effect}",
-            choices=["auto", "on", "off"],
+            choices=EFFECT_MODES,
             help=f"model {what} (default auto: when the scene has occluders)",
         )
     p.add_argument(

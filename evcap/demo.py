@@ -229,27 +229,27 @@ def _register(ctx: DemoContext) -> str:
     similarity), so that the reconstruction is measured against the true held-out views. Only
     the evaluation uses the truth: the poses were estimated from the events alone."""
     from evcap.poses.align import apply_similarity, pose_errors
-    from evcap.records import Poses
-    from evcap.session import Session, write_group
+    from evcap.records import GroundTruth, Poses
+    from evcap.session import Session
     from evcap.sim.truth import copy_truth
 
     copy_truth(ctx.fixtures / SCENE / "truth.h5", ctx.scene, replace=True)
     with Session.open(ctx.scene) as s:
-        poses = s.group("poses")
-        t, T, attrs = poses["t"][:], poses["T_world_cam"][:], dict(poses.attrs)
-        points = poses["points_xyz"][:] if "points_xyz" in poses else None
-        gt = s.group("gt")
-        truth = Poses(gt["t"][:], gt["T_world_cam"][:])
+        poses = Poses.read(s)
+        truth = GroundTruth.read(s).poses()
+    t = poses.t
     inside = (t >= truth.start) & (t <= truth.end)
-    errors = pose_errors(T[inside], truth.at(t[inside]), by="poses")
-    attrs["scale"] = "metric: registered to the simulator's truth by a similarity"
-    attrs["rotation_median_deg"] = errors["rotation_median_deg"]
-    attrs["translation_median_pct"] = errors["translation_median_pct"]
-    T = apply_similarity(T, errors["scale"], errors["R"], errors["t"])
-    arrays = {"t": t, "T_world_cam": T}
-    if points is not None:
-        arrays["points_xyz"] = errors["scale"] * points @ errors["R"].T + errors["t"]
-    write_group(ctx.scene, "poses", arrays, attrs, replace=True)
+    errors = pose_errors(poses.T_world_cam[inside], truth.at(t[inside]), by="poses")
+    scale, R, shift = errors["scale"], errors["R"], errors["t"]
+    poses.replace(
+        T_world_cam=apply_similarity(poses.T_world_cam, scale, R, shift),
+        points_xyz=None if poses.points_xyz is None else scale * poses.points_xyz @ R.T + shift,
+        scale="metric: registered to the simulator's truth by a similarity",
+        notes={
+            "rotation_median_deg": errors["rotation_median_deg"],
+            "translation_median_pct": errors["translation_median_pct"],
+        },
+    ).write(ctx.scene)
     return (
         f"against the truth: rotation {errors['rotation_median_deg']:.2f} deg, translation "
         f"{errors['translation_median_pct']:.2f} % of the path (medians)"
@@ -275,21 +275,23 @@ def _reconstruct(ctx: DemoContext, stage: str) -> str:
             say=ctx.say,
             progress=update,
         )
-    if m.get("interrupted"):
+    if m.interrupted:
         raise KeyboardInterrupt
-    nan = float("nan")
+    f = m.figures
+
+    def show(value: float | None, scale: float = 1.0) -> float:
+        return float("nan") if value is None else scale * value
+
     if stage == "radiance":
         return (
-            f"{m['gaussians']:,} Gaussians, {m['iterations']} steps; held-out views: object "
-            f"{m.get('object_psnr_cc', nan):.1f} dB (a constant color "
-            f"{m.get('object_psnr_constant', nan):.1f} dB), normals "
-            f"{m.get('normal_mae_deg', nan):.1f} deg, depth "
-            f"{100 * m.get('depth_rel_err', nan):.0f} % off"
+            f"{m.gaussians:,} Gaussians, {m.iterations} steps; held-out views: object "
+            f"{show(f.object_psnr_cc):.1f} dB (a constant color "
+            f"{show(f.object_psnr_constant):.1f} dB), normals "
+            f"{show(f.normal_mae_deg):.1f} deg, depth {show(f.depth_rel_err, 100):.0f} % off"
         )
     return (
-        f"{m['material_iterations']} steps; base color {m.get('base_color_psnr_cc', nan):.1f} dB, "
-        f"roughness error {m.get('roughness_mae', nan):.2f}, normals "
-        f"{m.get('normal_mae_deg', nan):.1f} deg"
+        f"{m.material_iterations} steps; base color {show(f.base_color_psnr_cc):.1f} dB, "
+        f"roughness error {show(f.roughness_mae):.2f}, normals {show(f.normal_mae_deg):.1f} deg"
     )
 
 

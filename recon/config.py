@@ -5,8 +5,32 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 from evcap.errors import InputError
+
+# the choices a caller names as strings; each checked where it enters (reconstruct, preset,
+# material_preset, check, pick_device, pick_backend) with an error that lists them
+Stage = Literal["radiance", "material", "all"]  # stage I, stage II, both
+Preset = Literal["tiny", "fast", "paper"]
+Device = Literal["cpu", "cuda"]
+Backend = Literal["cpu", "torch", "gsplat"]  # the rasterizer (recon/rasterize.py)
+ZeroEvents = Literal["target", "bound"]  # what a pixel without events says
+EffectMode = Literal["auto", "on", "off"]  # stage II's visibility and indirect light
+Ablation = Literal["anchor", "tv", "distill"]  # stage II's terms that can be left out
+STAGES: tuple[Stage, ...] = get_args(Stage)
+PRESET_NAMES: tuple[Preset, ...] = get_args(Preset)
+DEVICES: tuple[Device, ...] = get_args(Device)
+BACKENDS: tuple[Backend, ...] = get_args(Backend)
+ZERO_EVENTS: tuple[ZeroEvents, ...] = get_args(ZeroEvents)
+EFFECT_MODES: tuple[EffectMode, ...] = get_args(EffectMode)
+ABLATIONS: tuple[Ablation, ...] = get_args(Ablation)
+# the command line's names of the ablations (`evcap reconstruct --without NAME`)
+ABLATION_FLAGS: dict[str, Ablation] = {
+    "anchor": "anchor",
+    "edge-tv": "tv",
+    "distillation": "distill",
+}
 
 
 @dataclass
@@ -33,7 +57,7 @@ class RadianceConfig:
     views_per_step: int = 3  # renders per step; every two of them make a window
     log_eps: float = 1e-3  # added to the radiance before the log (the sensor's dark level)
     # a pixel without events: "target" (its change is 0) or "bound" (|change| < C)
-    zero_events: str = "target"
+    zero_events: ZeroEvents = "target"
     silent_weight: float = 0.3  # share of the event loss for pixels without events
     # loss weights (method.md): L = L_event + 0.1 L_GW + 0.05 L_normal
     anchor_weight: float = 0.1
@@ -100,8 +124,8 @@ class MaterialConfig:
     tv_normal_weight: float = 0.1
     # effects: "auto" models them when the scene calls for it (visibility: occluders found in
     # the baked geometry; indirect: with visibility), "on", or "off"
-    visibility: str = "auto"
-    indirect: str = "auto"
+    visibility: EffectMode = "auto"
+    indirect: EffectMode = "auto"
     edge_slice_ms: float = 10.0  # the events warped into each edge map
     edge_frames: int = 48  # views with an edge map; the training frames of stage II
     lr_base_color: float = 0.05
@@ -116,28 +140,30 @@ class MaterialConfig:
 # 27.6 deg and the base color from 22.2 to 21.6 dB; TV 0.05 / 1 / 4 / 10: 22.2 / 22.8 /
 # 23.2 / 23.1 dB, the relit object 24.4 / 24.8 / 25.0 / 24.5
 FAST_MATERIAL = {"tv_weight": 4.0, "lr_normals": 0.0}
-MATERIAL_PRESETS: dict[str, MaterialConfig] = {
+MATERIAL_PRESETS: dict[Preset, MaterialConfig] = {
     "tiny": MaterialConfig(iterations=60, edge_frames=16, **FAST_MATERIAL),
     "fast": MaterialConfig(**FAST_MATERIAL),
     "paper": MaterialConfig(iterations=10_000, edge_frames=200),
 }
 
 
-def material_preset(name: str, **overrides: object) -> MaterialConfig:
+def material_preset(name: Preset, **overrides: object) -> MaterialConfig:
+    """Stage II's settings of the named preset with some fields replaced (None values are
+    ignored)."""
     if name not in MATERIAL_PRESETS:
-        raise InputError(f"unknown preset {name!r}; expected one of {', '.join(PRESETS)}")
+        raise InputError(f"unknown preset {name!r}; expected one of {', '.join(PRESET_NAMES)}")
     config = dataclasses.replace(
         MATERIAL_PRESETS[name], **{k: v for k, v in overrides.items() if v is not None}
     )
     if config.iterations < 0:
         raise InputError("material iterations must be at least 0")
     for effect in ("visibility", "indirect"):
-        if getattr(config, effect) not in ("auto", "on", "off"):
+        if getattr(config, effect) not in EFFECT_MODES:
             raise InputError(f'{effect} must be "auto", "on" or "off"')
     return config
 
 
-PRESETS: dict[str, RadianceConfig] = {
+PRESETS: dict[Preset, RadianceConfig] = {
     "tiny": RadianceConfig(
         iterations=150,
         resolution=0.25,
@@ -177,10 +203,10 @@ PRESETS: dict[str, RadianceConfig] = {
 }
 
 
-def preset(name: str, **overrides: object) -> RadianceConfig:
+def preset(name: Preset, **overrides: object) -> RadianceConfig:
     """The named preset with some fields replaced (None values are ignored)."""
     if name not in PRESETS:
-        raise InputError(f"unknown preset {name!r}; expected one of {', '.join(PRESETS)}")
+        raise InputError(f"unknown preset {name!r}; expected one of {', '.join(PRESET_NAMES)}")
     unknown = set(overrides) - {f.name for f in dataclasses.fields(RadianceConfig)}
     if unknown:
         raise InputError(f"unknown stage-I setting(s): {', '.join(sorted(unknown))}")
@@ -201,7 +227,7 @@ def check(config: RadianceConfig) -> None:
         raise InputError("coarse_until is a fraction of the run, in [0, 1]")
     if not 0 <= config.sh_degree <= 3:
         raise InputError("sh_degree must be 0..3")
-    if config.zero_events not in ("target", "bound"):
+    if config.zero_events not in ZERO_EVENTS:
         raise InputError('zero_events must be "target" or "bound"')
     if config.frame_interval_ms <= 0 or config.max_window_frames < 1:
         raise InputError("frame_interval_ms must be > 0 and max_window_frames >= 1")

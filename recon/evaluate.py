@@ -21,7 +21,7 @@ from evcap.recon.metrics import (
 )
 from evcap.recon.optics import SensorOptics, render_grid
 from evcap.recon.radiance import RadianceField
-from evcap.session import Session
+from evcap.records import TruthViews
 
 
 @torch.no_grad()
@@ -61,39 +61,22 @@ def render_views(
     return {k: torch.stack(v).cpu().numpy() for k, v in out.items()}
 
 
-def test_views(session: Session) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """The held-out poses [N, 4, 4] and whatever truth the session has for them."""
-    if "gt" not in session.groups:
-        return np.zeros((0, 4, 4)), {}
-    g = session.group("gt")
-    if "test_T_world_cam" not in g:
-        return np.zeros((0, 4, 4)), {}
-    truth = {k[5:]: g[k][:] for k in g if k.startswith("test_") and k != "test_T_world_cam"}
-    return g["test_T_world_cam"][:], truth
-
-
-def object_mask(truth: dict[str, np.ndarray]) -> np.ndarray | None:
-    """The object's pixels of the held-out views: the truth's mask (images with alpha), else
-    where its depth has a surface; None when it has neither."""
-    if "mask" in truth:
-        return truth["mask"].astype(bool)
-    return truth["depth"] > 0 if "depth" in truth else None
-
-
-def metrics(views: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -> dict[str, float | None]:
+def metrics(views: dict[str, np.ndarray], truth: TruthViews) -> dict[str, float | None]:
+    """Stage I against the truth: the render (whole image and the object's pixels), depth and
+    normals."""
     out: dict[str, float | None] = {}
-    mask = object_mask(truth)
-    if "radiance" in truth and mask is not None:
-        out.update(object_metrics(views["radiance"], truth["radiance"], mask))
-    if "radiance" in truth:
-        out["blur_psnr"] = blur_psnr(truth["radiance"])
-        out.update(image_metrics(views["radiance"], truth["radiance"], "render"))
-        out["lpips"] = lpips_if_available(srgb(views["radiance"]), srgb(truth["radiance"]))
-    if "depth" in truth:
-        out["depth_abs_err"] = depth_abs_err(views["depth"], truth["depth"])
-        out["depth_rel_err"] = depth_rel_err(views["depth"], truth["depth"])
-    if "normal" in truth:
-        out["normal_mae_deg"] = normal_mae_deg(views["normal"], truth["normal"])
+    mask = truth.object_mask()
+    if truth.radiance is not None and mask is not None:
+        out.update(object_metrics(views["radiance"], truth.radiance, mask))
+    if truth.radiance is not None:
+        out["blur_psnr"] = blur_psnr(truth.radiance)
+        out.update(image_metrics(views["radiance"], truth.radiance, "render"))
+        out["lpips"] = lpips_if_available(srgb(views["radiance"]), srgb(truth.radiance))
+    if truth.depth is not None:
+        out["depth_abs_err"] = depth_abs_err(views["depth"], truth.depth)
+        out["depth_rel_err"] = depth_rel_err(views["depth"], truth.depth)
+    if truth.normal is not None:
+        out["normal_mae_deg"] = normal_mae_deg(views["normal"], truth.normal)
     return out
 
 
@@ -102,52 +85,52 @@ BLEEDING_ABOVE = 0.1  # color bleeding: the bounce brings more than this share o
 
 
 def material_metrics(
-    views: dict[str, np.ndarray], truth: dict[str, np.ndarray], radiance: np.ndarray | None = None
+    views: dict[str, np.ndarray], truth: TruthViews, radiance: np.ndarray | None = None
 ) -> dict[str, float | None]:
     """Stage II against the truth: base color (on the surface; also inside shadows and color
     bleeding when the truth marks them), roughness, normals, and the physically based render.
     ``radiance``: stage I's render of the same views, scored as a base color
     (``base_color_psnr_cc_baseline``: what no decomposition at all reaches)."""
     out: dict[str, float | None] = {}
-    if "radiance" in truth:
-        out.update(image_metrics(views["radiance"], truth["radiance"], "pbr_render"))
-    if "normal" in truth:
-        out["normal_mae_deg"] = normal_mae_deg(views["normal"], truth["normal"])
-        surface = np.linalg.norm(truth["normal"], axis=-1) > 0.5
+    if truth.radiance is not None:
+        out.update(image_metrics(views["radiance"], truth.radiance, "pbr_render"))
+    if truth.normal is not None:
+        out["normal_mae_deg"] = normal_mae_deg(views["normal"], truth.normal)
+        surface = np.linalg.norm(truth.normal, axis=-1) > 0.5
         regions = {}
-        if "visibility" in truth:
-            regions["shadow"] = truth["visibility"] < SHADOW_BELOW
-        if "indirect" in truth and "radiance" in truth:
+        if truth.visibility is not None:
+            regions["shadow"] = truth.visibility < SHADOW_BELOW
+        if truth.indirect is not None and truth.radiance is not None:
             lum = np.array([0.2126, 0.7152, 0.0722])
-            bounce, total = truth["indirect"] @ lum, truth["radiance"] @ lum
+            bounce, total = truth.indirect @ lum, truth.radiance @ lum
             regions["bleeding"] = bounce > BLEEDING_ABOVE * np.maximum(total, 1e-6)
-        if "base_color" in truth:
+        if truth.base_color is not None:
             out.update(
                 surface_metrics(
-                    views["base_color"], truth["base_color"], surface, "base_color", regions
+                    views["base_color"], truth.base_color, surface, "base_color", regions
                 )
             )
             if radiance is not None and surface.any():
-                same = surface_metrics(radiance, truth["base_color"], surface, "base_color")
+                same = surface_metrics(radiance, truth.base_color, surface, "base_color")
                 out["base_color_psnr_cc_baseline"] = same["base_color_psnr_cc"]
-        if "roughness" in truth and surface.any():
-            err = np.abs(views["roughness"] - truth["roughness"])[surface]
+        if truth.roughness is not None and surface.any():
+            err = np.abs(views["roughness"] - truth.roughness)[surface]
             out["roughness_mae"] = float(err.mean())
     return out
 
 
 def relit_metrics(
-    relit: np.ndarray, truth: dict[str, np.ndarray], radiance: np.ndarray | None = None
+    relit: np.ndarray, truth: TruthViews, radiance: np.ndarray | None = None
 ) -> dict[str, float]:
     """The held-out views rendered under the truth's second light against its renders: over
     the image, and on the object's pixels (``relit_object_psnr_cc``). ``radiance``: the views
     under the first light, not relit, scored the same way (``relit_object_psnr_cc_baseline``:
     what the color correction alone makes of a render that was never relit)."""
-    out = image_metrics(relit, truth["relit_radiance"], "relit")
-    mask = object_mask(truth)
+    out = image_metrics(relit, truth.relit_radiance, "relit")
+    mask = truth.object_mask()
     if mask is not None and mask.any():
-        out.update(surface_metrics(relit, truth["relit_radiance"], mask, "relit_object"))
+        out.update(surface_metrics(relit, truth.relit_radiance, mask, "relit_object"))
         if radiance is not None:
-            same = surface_metrics(radiance, truth["relit_radiance"], mask, "relit_object")
+            same = surface_metrics(radiance, truth.relit_radiance, mask, "relit_object")
             out["relit_object_psnr_cc_baseline"] = same["relit_object_psnr_cc"]
     return out

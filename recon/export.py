@@ -1,10 +1,10 @@
 """What a reconstruction leaves behind: the Gaussians as a 3DGS PLY, rendered views as PNG
-(and exact values as .npz), a checkpoint, the settings as TOML and the metrics as JSON."""
+(and exact values as .npz), the checkpoints and the settings as TOML (the figures go to
+OUT/metrics.json through evcap.records.ReconstructionResult)."""
 
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +12,7 @@ import torch
 
 from evcap.errors import InputError
 from evcap.images import srgb
+from evcap.recon.config import Backend
 from evcap.recon.gaussians import Background, Gaussians
 from evcap.recon.material import MaterialField
 from evcap.recon.radiance import RadianceField
@@ -106,24 +107,24 @@ def write_image(linear: np.ndarray, path: Path) -> None:
     cv2.imwrite(str(path), img.astype(np.uint8))
 
 
-def save_checkpoint(field: RadianceField, config: dict, extra: dict, path: Path) -> None:
+def save_checkpoint(field: RadianceField, config: dict, path: Path) -> None:
+    """Stage I: the Gaussians, the background and the settings they were fitted with."""
     _save(
         {
             "gaussians": {k: v.detach().cpu() for k, v in field.gaussians.state_dict().items()},
             "background": field.background.faces.detach().cpu(),
             "config": config,
-            **extra,
         },
         path,
     )
 
 
-def save_material_checkpoint(field: MaterialField, extra: dict, path: Path) -> None:
+def save_material_checkpoint(field: MaterialField, path: Path) -> None:
     """Stage II: the material, the light, the baked visibility and which effects were on."""
     state = {k: v.detach().cpu() for k, v in field.state_dict().items()}
     if field.visibility_sh is not None:
         state["visibility_sh"] = field.visibility_sh.detach().cpu()
-    _save({"material": state, "effects": field.effects, **extra}, path)
+    _save({"material": state, "effects": field.effects}, path)
 
 
 def _save(data: dict, path: Path) -> None:
@@ -131,17 +132,6 @@ def _save(data: dict, path: Path) -> None:
     tmp = path.with_suffix(".tmp")
     torch.save(data, tmp)
     tmp.replace(path)  # a crash mid-write leaves the previous checkpoint
-
-
-def write_json(data: dict, path: Path) -> None:
-    def clean(v):
-        if isinstance(v, float) and not math.isfinite(v):
-            return None
-        if isinstance(v, np.generic):
-            return v.item()
-        return v
-
-    path.write_text(json.dumps({k: clean(v) for k, v in data.items()}, indent=2) + "\n")
 
 
 def write_toml(sections: dict[str, dict], path: Path) -> None:
@@ -160,7 +150,9 @@ def write_toml(sections: dict[str, dict], path: Path) -> None:
     path.write_text("\n".join(lines))
 
 
-def load_checkpoint(path: Path, device: str = "cpu", backend: str = "cpu"):
+def load_checkpoint(
+    path: Path, device: str = "cpu", backend: Backend = "cpu"
+) -> tuple[RadianceField, dict]:
     """(RadianceField, settings) from a stage-I checkpoint written by save_checkpoint."""
     if not path.exists():
         raise InputError(f"{path}: no stage-I checkpoint; run `evcap reconstruct --stage radiance`")

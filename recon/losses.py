@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+from typing import assert_never
+
 import torch
 import torch.nn.functional as F
+
+from evcap.recon.config import ZeroEvents
 
 
 def log_radiance(radiance: torch.Tensor, eps: float) -> torch.Tensor:
@@ -18,7 +22,7 @@ def event_loss(
     threshold_on: torch.Tensor,
     threshold_off: torch.Tensor,
     mask: torch.Tensor,
-    zero_events: str = "target",
+    zero_events: ZeroEvents = "target",
     silent_weight: float | None = None,
 ) -> torch.Tensor:
     """Mean L1 between the rendered log change and C_on ON - C_off OFF, over ``mask``.
@@ -32,10 +36,15 @@ def event_loss(
     -C_off < change < C_on (a hinge): what a silent pixel really says.
     """
     err = (predicted - measured).abs()
-    if zero_events == "bound":
-        silent = counts == 0
-        inside = F.relu(predicted - threshold_on) + F.relu(-predicted - threshold_off)
-        err = torch.where(silent, inside, err)
+    match zero_events:
+        case "target":
+            pass
+        case "bound":
+            silent = counts == 0
+            inside = F.relu(predicted - threshold_on) + F.relu(-predicted - threshold_off)
+            err = torch.where(silent, inside, err)
+        case _:
+            assert_never(zero_events)
     m = mask.to(err.dtype)
     if silent_weight is None:
         return (err * m).sum() / m.sum().clamp(min=1)

@@ -16,6 +16,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import assert_never
 
 import numpy as np
 import torch
@@ -23,7 +24,7 @@ import torch.nn.functional as F
 
 from evcap.edge_maps import edge_map
 from evcap.errors import NumericalError
-from evcap.recon.config import MaterialConfig, RadianceConfig
+from evcap.recon.config import Ablation, Backend, EffectMode, MaterialConfig, RadianceConfig
 from evcap.recon.gaussians import Background, Gaussians
 from evcap.recon.losses import anchor_loss
 from evcap.recon.optics import RenderGrid
@@ -72,7 +73,7 @@ class MaterialField(torch.nn.Module):
         normals: torch.Tensor,
         visibility: torch.Tensor | None,
         indirect: bool,
-        backend: str = "cpu",
+        backend: Backend = "cpu",
     ) -> None:
         super().__init__()
         self.gaussians = gaussians.requires_grad_(False)
@@ -166,11 +167,9 @@ def new_material_field(
         normals = torch.where(
             ((cams - g.means) * normals).sum(1, keepdim=True) < 0, -normals, normals
         )
-    occluded = config.visibility == "on" or (
-        config.visibility == "auto" and has_occluders(g, data, radiance.backend)
-    )
+    occluded = modelled(config.visibility, lambda: has_occluders(g, data, radiance.backend))
     visibility = bake_visibility(g) if occluded else None
-    indirect = config.indirect == "on" or (config.indirect == "auto" and occluded)
+    indirect = modelled(config.indirect, lambda: occluded)
     field = MaterialField(g, light, normals.cpu(), visibility, indirect, radiance.backend)
     field = field.to(g.means.device)
     with torch.no_grad():
@@ -182,6 +181,19 @@ def new_material_field(
         color, _ = field.shaded(cams)
         field.base_logits.copy_(_logit((0.5 * target / color.clamp(min=1e-6)).clamp(0.03, 0.97)))
     return field
+
+
+def modelled(mode: EffectMode, auto: Callable[[], bool]) -> bool:
+    """Whether an effect is modelled: "on", "off", or "auto" (what ``auto()`` says)."""
+    match mode:
+        case "on":
+            return True
+        case "off":
+            return False
+        case "auto":
+            return auto()
+        case _:
+            assert_never(mode)
 
 
 @torch.no_grad()
@@ -204,7 +216,7 @@ def plane_normals(
 
 
 @torch.no_grad()
-def has_occluders(g: Gaussians, data: TrainingData, backend: str, views: int = 4) -> bool:
+def has_occluders(g: Gaussians, data: TrainingData, backend: Backend, views: int = 4) -> bool:
     """Whether surfaces hide one another in the views along the path: depth jumps by more
     than OCCLUSION_JUMP between neighbouring opaque pixels on more than OCCLUDED_SHARE of them.
     (An isolated object's depth is continuous wherever it is opaque; the baked visibility
@@ -286,7 +298,7 @@ def train_material(
     device: str = "cpu",
     progress: Callable[[int, int, str], None] | None = None,
     clock: Callable[[], float] = time.perf_counter,
-    ablate: frozenset[str] = frozenset(),
+    ablate: frozenset[Ablation] = frozenset(),
     resume: dict | None = None,
     save_state: Callable[[dict], None] | None = None,
     save_every_s: float = 120.0,
@@ -312,7 +324,15 @@ def train_material(
     if field.indirect_sh is not None:
         groups.append({"params": [field.indirect_sh], "lr": config.lr_indirect})
     optimizer = torch.optim.Adam(groups, eps=1e-15)
-    stage1_cache: dict[int, torch.Tensor] = {}
+    targets: dict[int, torch.Tensor] = {}
+
+    @torch.no_grad()
+    def distill_target(frame: int, T_world_cam: np.ndarray) -> torch.Tensor:
+        """Stage I's render of the frame (rendered once)."""
+        if frame not in targets:
+            targets[frame] = radiance.render(T_world_cam, data.grid).color
+        return targets[frame]
+
     stride = max(len(data.windows) / len(frames_all), 1.0)
     # windows as long as stage I's, counted in stage II's coarser frames
     spacing = dataclasses.replace(
@@ -340,33 +360,9 @@ def train_material(
             step = steps.step
             pick = draw_frames(rng, len(frames_all), spacing)
             frames = frames_all[pick]
-            poses = data.track.at(data.windows.frame_times[frames])
-            renders = [field.render(T, data.grid) for T in poses]
-            seen = [data.grid.sample(r.color[..., :3]) for r in renders]
-            ev = windows_event_loss(data, stage1, frames, seen)
-            total = ev
-            terms = {"event": ev.item(), "distill": 0.0, "anchor": 0.0, "tv": 0.0}
-            if "distill" not in ablate:
-                dl = 0
-                for f, T, r in zip(frames, poses, renders, strict=True):
-                    if int(f) not in stage1_cache:
-                        with torch.no_grad():
-                            stage1_cache[int(f)] = radiance.render(T, data.grid).color
-                    dl = dl + (r.color[..., :3] - stage1_cache[int(f)]).abs().mean()
-                dl = dl / len(renders)
-                total = total + config.distill_weight * dl
-                terms["distill"] = dl.item()
-            if "anchor" not in ablate:
-                an = anchor_loss(torch.cat(seen), stage1.anchor_level)
-                total = total + config.anchor_weight * an
-                terms["anchor"] = an.item()
-            if "tv" not in ablate:
-                tv = sum(
-                    edge_tv(r.color, weights[int(f)], config.tv_normal_weight)
-                    for f, r in zip(frames, renders, strict=True)
-                ) / len(renders)
-                total = total + config.tv_weight * tv
-                terms["tv"] = tv.item()
+            total, terms = _losses(
+                field, data, stage1, config, frames, distill_target, weights, ablate
+            )
             if not torch.isfinite(total):
                 raise NumericalError(f"stage II: the loss became {float(total)} at step {step}")
             total.backward()
@@ -381,6 +377,47 @@ def train_material(
             if progress:
                 progress(step, config.iterations, f"material loss {loss:.4f}")
     return MaterialFit(field, log, steps.interrupted, edges, steps.step)
+
+
+def _losses(
+    field: MaterialField,
+    data: TrainingData,
+    stage1: RadianceConfig,
+    config: MaterialConfig,
+    frames: np.ndarray,
+    distill_target: Callable[[int, np.ndarray], torch.Tensor],
+    edge_weights: dict[int, torch.Tensor],
+    ablate: frozenset[Ablation],
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """The loss of the renders at ``frames``, L = L_event + 1.0 L_rad + 0.1 L_GW + 0.05 L_TV
+    without the terms ``ablate`` leaves out; (the total, its terms). ``distill_target(frame,
+    pose)``: stage I's render of the frame; ``edge_weights``: exp(-beta M_edge) of each
+    frame."""
+    poses = data.track.at(data.windows.frame_times[frames])
+    renders = [field.render(T, data.grid) for T in poses]
+    seen = [data.grid.sample(r.color[..., :3]) for r in renders]
+    ev = windows_event_loss(data, stage1, frames, seen)
+    total = ev
+    terms = {"event": ev.item(), "distill": 0.0, "anchor": 0.0, "tv": 0.0}
+    if "distill" not in ablate:
+        dl = 0
+        for f, T, r in zip(frames, poses, renders, strict=True):
+            dl = dl + (r.color[..., :3] - distill_target(int(f), T)).abs().mean()
+        dl = dl / len(renders)
+        total = total + config.distill_weight * dl
+        terms["distill"] = dl.item()
+    if "anchor" not in ablate:
+        an = anchor_loss(torch.cat(seen), stage1.anchor_level)
+        total = total + config.anchor_weight * an
+        terms["anchor"] = an.item()
+    if "tv" not in ablate:
+        tv = sum(
+            edge_tv(r.color, edge_weights[int(f)], config.tv_normal_weight)
+            for f, r in zip(frames, renders, strict=True)
+        ) / len(renders)
+        total = total + config.tv_weight * tv
+        terms["tv"] = tv.item()
+    return total, terms
 
 
 def edge_tv(maps: torch.Tensor, weight: torch.Tensor, normal_weight: float) -> torch.Tensor:

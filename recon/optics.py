@@ -15,9 +15,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from evcap.errors import InputError
 from evcap.events import Channel, pixel_channels
-from evcap.records import read_intrinsics
+from evcap.records import Calibration
+from evcap.records.calibration import DistortionModel
 from evcap.session import Session
 
 # what each channel sees of the rendered (R, G, B): a Bayer pixel one of them, MONO luminance
@@ -31,7 +31,7 @@ class SensorOptics:
     width: int
     height: int
     K: np.ndarray  # [3, 3]
-    distortion_model: str  # none, radtan, equidistant
+    distortion_model: DistortionModel
     distortion: np.ndarray
     color_filter: str
     threshold_on: np.ndarray  # [H, W] float32
@@ -40,24 +40,13 @@ class SensorOptics:
 
     @classmethod
     def from_session(cls, session: Session) -> SensorOptics:
-        if "calibration" not in session.groups:
-            raise InputError(
-                f"{session.path} has no calibration (/calibration); "
-                "run `evcap calibrate` on it first"
-            )
-        g = session.group("calibration")
+        """The session's sensor and calibration; InputError naming what to run when the
+        calibration lacks the intrinsics or the per-pixel thresholds."""
+        calibration = Calibration.read(session)
+        K, model, dist = calibration.intrinsics(str(session.path))
+        on, off = calibration.thresholds(str(session.path))
         s = session.sensor
-        w, h = int(g.attrs.get("width", s.width)), int(g.attrs.get("height", s.height))
-        if (w, h) != (s.width, s.height):
-            raise InputError(
-                f"{session.path}: the calibration is for {w} x {h}, the sensor is "
-                f"{s.width} x {s.height}"
-            )
-        K, model, dist = read_intrinsics(session)
-        on = _map(g, "threshold_on", h, w, session)
-        off = _map(g, "threshold_off", h, w, session)
-        hot = g["hot_pixels"][:].astype(bool) if "hot_pixels" in g else np.zeros((h, w), bool)
-        return cls(w, h, K, model, dist, s.color_filter, on, off, hot)
+        return cls(s.width, s.height, K, model, dist, s.color_filter, on, off, calibration.hot())
 
     def undistorted(self) -> np.ndarray:
         """[H * W, 2] normalized pinhole coordinates (x/z, y/z) of each sensor pixel's centre."""
@@ -123,15 +112,6 @@ def render_grid(
     gy = 2 * v / max(height - 1, 1) - 1
     grid = torch.tensor(np.stack([gx, gy], 1), dtype=torch.float32).reshape(1, 1, -1, 2)
     return RenderGrid(K.to(device), width, height, grid.to(device))
-
-
-def _map(g, name: str, h: int, w: int, session: Session) -> np.ndarray:
-    if name not in g:
-        raise InputError(f"{session.path}: /calibration has no {name}; run `evcap calibrate`")
-    m = np.asarray(g[name][:], np.float32)
-    if m.shape != (h, w) or not np.isfinite(m).all() or (m <= 0).any():
-        raise InputError(f"{session.path}: /calibration/{name} must be {h} x {w} positive numbers")
-    return m
 
 
 __all__ = ["CHANNEL_WEIGHTS", "Channel", "RenderGrid", "SensorOptics", "render_grid"]

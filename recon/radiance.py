@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 
 from evcap.errors import InputError, NumericalError
-from evcap.recon.config import RadianceConfig
+from evcap.recon.config import Backend, RadianceConfig
 from evcap.recon.densify import Densifier
 from evcap.recon.event_windows import EventWindows
 from evcap.recon.gaussians import Background, Gaussians, make_optimizer, means_lr
@@ -53,7 +53,6 @@ class TrainingData:
     channel_weights: torch.Tensor  # [H * W, 3]: what each sensor pixel sees of (R, G, B)
     mask: torch.Tensor  # [H * W] bool: pixels the loss uses (hot pixels left out)
     volume: SceneVolume
-    points: np.ndarray | None = None  # [P, 3] structure from motion's points (/poses/points_xyz)
 
 
 def load_training_data(session: Session, config: RadianceConfig, device: str) -> TrainingData:
@@ -73,17 +72,17 @@ def load_training_data(session: Session, config: RadianceConfig, device: str) ->
     mask = torch.from_numpy(~optics.hot_pixels.ravel())
     grid = render_grid(optics, config.resolution, device)
     coarse = render_grid(optics, config.coarse_resolution, device) if config.coarse_until else None
-    g = session.group("poses")
-    points = g["points_xyz"][:].astype(np.float64) if "points_xyz" in g else None
     return TrainingData(
-        optics, track, windows, grid, coarse, weights.to(device), mask.to(device), volume, points
+        optics, track, windows, grid, coarse, weights.to(device), mask.to(device), volume
     )
 
 
 class RadianceField(torch.nn.Module):
     """Gaussians with view-dependent radiance, in front of a distant background."""
 
-    def __init__(self, gaussians: Gaussians, background: Background, backend: str = "cpu") -> None:
+    def __init__(
+        self, gaussians: Gaussians, background: Background, backend: Backend = "cpu"
+    ) -> None:
         super().__init__()
         self.gaussians = gaussians
         self.background = background
@@ -158,15 +157,15 @@ class Fit:
 
 
 def new_field(
-    data: TrainingData, config: RadianceConfig, seed: int, device: str, backend: str
+    data: TrainingData, config: RadianceConfig, seed: int, device: str, backend: Backend
 ) -> RadianceField:
     rng = np.random.default_rng(seed)
     poses = data.track.at(data.windows.frame_times)
     o = data.optics
     points = np.zeros((0, 3))
-    if config.init_on_points > 0 and data.points is not None:
+    if config.init_on_points > 0 and data.track.points_xyz is not None:
         n = min(round(config.init_on_points * config.init_gaussians), config.init_gaussians)
-        points = on_points(data.points, data.volume, n, rng)
+        points = on_points(data.track.points_xyz, data.volume, n, rng)
     rest = config.init_gaussians - len(points)
     if rest > 0:
         randoms = sample_points(data.volume, poses, o.K, o.width, o.height, rest, rng)
@@ -198,7 +197,7 @@ def train_radiance(
     *,
     seed: int = 0,
     device: str = "cpu",
-    backend: str = "cpu",
+    backend: Backend = "cpu",
     progress: Callable[[int, int, str], None] | None = None,
     clock: Callable[[], float] = time.perf_counter,
     evaluate: Callable[[RadianceField], dict] | None = None,

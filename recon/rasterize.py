@@ -15,12 +15,12 @@ camera, ``K`` has the pixel centres at integer coordinates (as OpenCV calibratio
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import assert_never
 
 import torch
 
 from evcap.errors import InputError, NumericalError
-
-BACKENDS = ("cpu", "torch", "gsplat")
+from evcap.recon.config import BACKENDS, Backend
 
 
 @dataclass
@@ -85,7 +85,7 @@ def camera_normals(
     return torch.where(flip, -n, n)
 
 
-def default_backend(device: torch.device | str) -> str:
+def default_backend(device: torch.device | str) -> Backend:
     """cpu on the CPU; on a CUDA device gsplat when it imports and works, else torch."""
     if torch.device(device).type != "cuda":
         return "cpu"
@@ -94,23 +94,31 @@ def default_backend(device: torch.device | str) -> str:
     return "gsplat" if _raster_gsplat.available() else "torch"
 
 
-def pick_backend(name: str | None, device: torch.device | str) -> str:
+def pick_backend(name: Backend | None, device: torch.device | str) -> Backend:
     """The backend asked for (None: the device's default), if it can render on ``device``."""
     if name is None:
         return default_backend(device)
     if name not in BACKENDS:
         raise InputError(f"unknown rasterizer backend {name!r}; expected one of {BACKENDS}")
     on_cuda = torch.device(device).type == "cuda"
-    if name == "cpu" and on_cuda:
-        raise InputError("--backend cpu renders on the CPU: use --device cpu, or gsplat or torch")
-    if name == "gsplat":
-        from evcap.recon import _raster_gsplat
+    match name:
+        case "cpu":
+            if on_cuda:
+                raise InputError(
+                    "--backend cpu renders on the CPU: use --device cpu, or gsplat or torch"
+                )
+        case "torch":
+            pass
+        case "gsplat":
+            from evcap.recon import _raster_gsplat
 
-        if not on_cuda or not _raster_gsplat.available():
-            raise InputError(
-                "--backend gsplat needs --device cuda, a CUDA GPU and gsplat (pip install "
-                "'evcap[cuda]'); use cpu or torch here"
-            )
+            if not on_cuda or not _raster_gsplat.available():
+                raise InputError(
+                    "--backend gsplat needs --device cuda, a CUDA GPU and gsplat (pip install "
+                    "'evcap[cuda]'); use cpu or torch here"
+                )
+        case _:
+            assert_never(name)
     return name
 
 
@@ -141,21 +149,22 @@ def rasterize(
     camera: Camera,
     *,
     background: torch.Tensor | None = None,
-    backend: str = "cpu",
+    backend: Backend = "cpu",
     near: float = 0.01,
 ) -> Render:
     """Render N Gaussians (means [N, 3], quats [N, 4], scales [N, 3] (not log), opacities [N]
     in (0, 1), features [N, D] (colors, or any per-Gaussian values)) into ``camera``.
     ``background`` [H, W, D] or [D] is added where the Gaussians leave light through."""
     _check_inputs(means, quats, scales, opacities, features)
-    if backend == "cpu":
-        from evcap.recon._raster_cpu import rasterize_cpu as impl
-    elif backend == "torch":
-        from evcap.recon._raster_torch import rasterize_torch as impl
-    elif backend == "gsplat":
-        from evcap.recon._raster_gsplat import rasterize_gsplat as impl
-    else:
-        raise InputError(f"unknown rasterizer backend {backend!r}; expected one of {BACKENDS}")
+    match backend:
+        case "cpu":
+            from evcap.recon._raster_cpu import rasterize_cpu as impl
+        case "torch":
+            from evcap.recon._raster_torch import rasterize_torch as impl
+        case "gsplat":
+            from evcap.recon._raster_gsplat import rasterize_gsplat as impl
+        case _:
+            assert_never(backend)
     out = impl(means, quats, scales, opacities, features, camera, near)
     if background is not None:
         out.color = out.color + (1 - out.alpha)[..., None] * background

@@ -8,10 +8,10 @@ checkpoint.
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Literal, assert_never
 
 import numpy as np
 import torch
@@ -19,48 +19,85 @@ import torch
 from evcap.errors import InputError
 from evcap.recon import config as cfg
 from evcap.recon import resume as resume_
-from evcap.recon.evaluate import (
-    material_metrics,
-    metrics,
-    object_mask,
-    relit_metrics,
-    render_views,
-    test_views,
+from evcap.recon.config import (
+    ABLATIONS,
+    DEVICES,
+    STAGES,
+    Ablation,
+    Backend,
+    Device,
+    EffectMode,
+    Preset,
+    Stage,
+    ZeroEvents,
 )
+from evcap.recon.evaluate import material_metrics, metrics, relit_metrics, render_views
 from evcap.recon.export import (
     load_checkpoint,
     save_checkpoint,
     save_material_checkpoint,
     write_image,
-    write_json,
     write_ply,
     write_toml,
     write_views,
 )
-from evcap.recon.material import environment_image, light_from_image, train_material
+from evcap.recon.material import (
+    MaterialFit,
+    environment_image,
+    light_from_image,
+    train_material,
+)
 from evcap.recon.metrics import (
     fit_color_correction,
     image_metrics,
     normal_mae_deg,
     object_metrics,
 )
-from evcap.recon.radiance import load_training_data, train_radiance
+from evcap.recon.optics import SensorOptics
+from evcap.recon.radiance import (
+    Fit,
+    RadianceField,
+    TrainingData,
+    load_training_data,
+    train_radiance,
+)
 from evcap.recon.rasterize import pick_backend
 from evcap.recon.shading import mip_chain
+from evcap.records import Figures, GroundTruth, ReconstructionResult, TruthViews
+from evcap.records.result import RESULT_FILE
 from evcap.session import Session
 
-STAGES = ("radiance", "material", "all")
-ABLATIONS = ("anchor", "tv", "distill")
+Training = Literal["radiance", "material"]  # stage I, stage II
 TRACK_VIEWS = 8  # views rendered along the path when the session has no held-out views
 HISTORY_VIEWS = 2  # held-out views rendered for the accuracy-versus-time curve
 
 
-def pick_device(name: str) -> str:
-    if name not in ("cpu", "cuda"):
+def pick_device(name: Device) -> Device:
+    """The device asked for, if PyTorch can use it here."""
+    if name not in DEVICES:
         raise InputError(f"unknown device {name!r}; expected cpu or cuda")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise InputError("--device cuda: no CUDA GPU is visible to PyTorch here; use --device cpu")
+    match name:
+        case "cpu":
+            pass
+        case "cuda":
+            if not torch.cuda.is_available():
+                raise InputError(
+                    "--device cuda: no CUDA GPU is visible to PyTorch here; use --device cpu"
+                )
+        case _:
+            assert_never(name)
     return name
+
+
+def _trainings(stage: Stage) -> tuple[Training, ...]:
+    """What a stage runs: stage I, stage II (from OUT's stage-I checkpoint), or both."""
+    match stage:
+        case "radiance" | "material":
+            return (stage,)
+        case "all":
+            return ("radiance", "material")
+        case _:
+            assert_never(stage)
 
 
 def read_environment(path: str | Path) -> np.ndarray:
@@ -83,26 +120,26 @@ def reconstruct(
     session_path: str | Path,
     out: str | Path,
     *,
-    preset: str = "fast",
-    stage: str = "all",
-    device: str = "cpu",
-    backend: str | None = None,
+    preset: Preset = "fast",
+    stage: Stage = "all",
+    device: Device = "cpu",
+    backend: Backend | None = None,
     resolution: float | None = None,
     iterations: int | None = None,
     material_iterations: int | None = None,
     seed: int = 0,
-    zero_events: str | None = None,
+    zero_events: ZeroEvents | None = None,
     radiance_settings: dict | None = None,
-    visibility: str | None = None,
-    indirect: str | None = None,
-    ablate: tuple[str, ...] = (),
+    visibility: EffectMode | None = None,
+    indirect: EffectMode | None = None,
+    ablate: tuple[Ablation, ...] = (),
     relight: str | Path | None = None,
     overwrite: bool = False,
     resume: bool = True,
     say: Callable[[str], None] = lambda line: None,
     progress: Callable[[int, int, str], None] | None = None,
-) -> dict:
-    """Run the reconstruction; returns what went into OUT/metrics.json. ``radiance_settings``:
+) -> ReconstructionResult:
+    """Run the reconstruction; returns what it wrote to OUT/metrics.json. ``radiance_settings``:
     stage I's (RadianceConfig's fields) over the preset's. With ``resume``, a
     stage interrupted in OUT with the same session and settings goes on from where it
     stopped; ``overwrite`` lets a finished (or differently started) one be replaced."""
@@ -110,6 +147,7 @@ def reconstruct(
         raise InputError(f"unknown stage {stage!r}; expected one of {', '.join(STAGES)}")
     if set(ablate) - set(ABLATIONS):
         raise InputError(f"unknown ablation(s) {sorted(set(ablate) - set(ABLATIONS))}")
+    runs = _trainings(stage)
     out = Path(out)
     mconfig = cfg.material_preset(
         preset, iterations=material_iterations, visibility=visibility, indirect=indirect
@@ -117,7 +155,7 @@ def reconstruct(
     environment = read_environment(relight) if relight is not None else None
     device = pick_device(device)
     backend = pick_backend(backend, device)
-    if stage == "material":
+    if "radiance" not in runs:
         field, settings = load_checkpoint(out / "checkpoint" / "radiance.pt", device, backend)
         config = cfg.RadianceConfig(**settings)
     else:
@@ -136,15 +174,17 @@ def reconstruct(
             "material": cfg.to_dict(mconfig),
             "ablate": sorted(ablate),
         }
-        states = _saved_states(out, stage, settings, resume, overwrite)
-        if stage == "all" and states["radiance"] is None and states["material"] is not None:
+        states = _saved_states(out, runs, settings, resume, overwrite)
+        if "radiance" in runs and states["radiance"] is None and states["material"] is not None:
             field, _ = load_checkpoint(out / "checkpoint" / "radiance.pt", device, backend)
         data = load_training_data(session, config, device)
-        poses, truth = test_views(session)
-        if environment is None and "relit_radiance" in truth:
-            environment = session.group("gt")["relight_environment"][:].astype(np.float64)
-        elif environment is not None:  # another light than the truth's: shown, not scored
-            truth.pop("relit_radiance", None)
+        gt = GroundTruth.read(session) if GroundTruth.present(session) else None
+        truth = gt.held_out_views() if gt is not None else TruthViews(np.zeros((0, 4, 4)))
+        if environment is not None:  # another light than the truth's: shown, not scored
+            truth = truth.without("relit_radiance")
+        elif gt is not None and truth.relit_radiance is not None:
+            environment = gt.relight_environment.astype(np.float64)
+        poses = truth.T_world_cam
         if not len(poses):
             times = np.linspace(
                 data.windows.frame_times[0], data.windows.frame_times[-1], TRACK_VIEWS
@@ -152,15 +192,15 @@ def reconstruct(
             poses = data.track.at(times.astype(np.int64))
         out.mkdir(parents=True, exist_ok=True)
         # stage I is not run again for stage II alone, nor to go on with an interrupted stage II
-        skip = stage == "material" or states["material"] is not None
-        previous = out / "metrics.json"
-        before = json.loads(previous.read_text()) if previous.exists() else {}
-        result = dict(before) if skip else {}
+        skip = "radiance" not in runs or states["material"] is not None
+        resumed = skip or states["radiance"] is not None
+        before = _previous_result(out) if resumed else ReconstructionResult()
+        result = before if skip else ReconstructionResult()
         stopped = False
         if not skip:
             if states["radiance"] is not None:
                 say(_going_on("stage I", states["radiance"], config.iterations))
-            field, figures = _stage_radiance(
+            fit, figures = _stage_radiance(
                 data,
                 config,
                 poses,
@@ -173,18 +213,24 @@ def reconstruct(
                 states["radiance"],
                 settings["radiance"],
             )
-            result.update(figures)
-            result["seconds"] = time.perf_counter() - started
+            field = fit.field
+            result.figures = Figures.of(figures)
+            result.seconds = time.perf_counter() - started
             if states["radiance"] is not None:  # and the time it took before
-                result["seconds"] += before.get("seconds", 0.0)
-            result.update(preset=preset, seed=seed, zero_events=config.zero_events)
-            stopped = figures["interrupted"]
-        if stage != "radiance" and not stopped:
+                result.seconds += before.seconds or 0.0
+            result.preset, result.seed, result.zero_events = preset, seed, config.zero_events
+            result.iterations, result.gaussians = fit.steps, len(field.gaussians)
+            result.device, result.backend = device, backend
+            result.interrupted, result.history = fit.interrupted, fit.history
+            result.training_log["radiance"] = [dataclasses.asdict(x) for x in fit.log]
+            stopped = fit.interrupted
+        if "material" in runs and not stopped:
             if states["material"] is not None:
                 say(_going_on("stage II", states["material"], mconfig.iterations))
+            earlier = (before.material_seconds or 0.0) if states["material"] is not None else 0.0
             started = time.perf_counter()
             path = resume_.state_path(out, "material")
-            fit = train_material(
+            mfit = train_material(
                 field,
                 data,
                 session,
@@ -197,21 +243,21 @@ def reconstruct(
                 resume=states["material"],
                 save_state=lambda state: resume_.save_state(path, state, settings["material"]),
             )
-    if stage != "radiance" and not stopped:
-        if "normal_mae_deg" in result and "radiance_normal_mae_deg" not in result:
-            result["radiance_normal_mae_deg"] = result["normal_mae_deg"]
-        result.update(
-            _material_outputs(
-                fit, field, poses, truth, data.optics, environment, out, device, ablate
-            )
-        )
-        result["material_seconds"] = time.perf_counter() - started
-        if states["material"] is not None:
-            result["material_seconds"] += before.get("material_seconds", 0.0)
-        result["interrupted"] = fit.interrupted
-        if not fit.interrupted:
+    if "material" in runs and not stopped:
+        figures = result.figures
+        if figures.normal_mae_deg is not None and figures.radiance_normal_mae_deg is None:
+            figures.radiance_normal_mae_deg = figures.normal_mae_deg
+        found = _material_outputs(mfit, field, poses, truth, data.optics, environment, out, device)
+        result.figures = dataclasses.replace(figures, **Figures.of(found).measured())
+        result.material_iterations = mfit.steps
+        result.effects = {**mfit.field.effects, **{k: k not in ablate for k in ABLATIONS}}
+        result.relit = environment is not None
+        result.material_seconds = time.perf_counter() - started + earlier
+        result.interrupted = mfit.interrupted
+        result.training_log["material"] = [dataclasses.asdict(x) for x in mfit.log]
+        if not mfit.interrupted:
             resume_.state_path(out, "material").unlink(missing_ok=True)
-    result["views"] = "held-out test views" if truth else "views along the camera path"
+    result.views = "held-out test views" if truth.maps() else "views along the camera path"
     sections = {
         "reconstruct": {
             "session": str(session_path),
@@ -225,21 +271,27 @@ def reconstruct(
         },
         "radiance": cfg.to_dict(config),
     }
-    if stage != "radiance":
+    if "material" in runs:
         sections["material"] = cfg.to_dict(mconfig)
     write_toml(sections, out / "config.toml")
-    write_json(result, out / "metrics.json")
+    result.write(out)
     return result
 
 
+def _previous_result(out: Path) -> ReconstructionResult:
+    """What OUT/metrics.json holds of an earlier run (nothing when it is not there)."""
+    if not (out / RESULT_FILE).exists():
+        return ReconstructionResult()
+    return ReconstructionResult.read(out)
+
+
 def _saved_states(
-    out: Path, stage: str, settings: dict, resume: bool, overwrite: bool
-) -> dict[str, dict | None]:
+    out: Path, runs: tuple[Training, ...], settings: dict, resume: bool, overwrite: bool
+) -> dict[Training, dict | None]:
     """The training states to go on from ({"radiance": ..., "material": ...}, None where a
     stage starts afresh); refuses to replace what OUT holds unless ``overwrite``."""
-    states: dict[str, dict | None] = {"radiance": None, "material": None}
-    names = {"radiance": ("radiance",), "material": ("material",)}.get(stage, tuple(states))
-    saved = [n for n in names if resume_.state_path(out, n).exists()]
+    states: dict[Training, dict | None] = {"radiance": None, "material": None}
+    saved = [n for n in runs if resume_.state_path(out, n).exists()]
     for name in saved if resume else ():
         states[name] = resume_.load_state(resume_.state_path(out, name), settings[name])
         if states[name] is None and not overwrite:
@@ -251,13 +303,13 @@ def _saved_states(
     if states["radiance"] is not None:
         states["material"] = None  # stage II starts afresh after it
     if not any(v is not None for v in states.values()):
-        done = out / "gaussians.ply" if stage != "material" else out / "checkpoint" / "material.pt"
+        done = out / "gaussians.ply" if "radiance" in runs else out / "checkpoint" / "material.pt"
         if done.exists() and not overwrite:
             raise InputError(
                 f"{out} already holds a reconstruction; choose another folder or pass --force"
             )
     # a stage that runs afresh makes what was saved of it (and, for stage I, of stage II) old
-    for name in ("material",) if stage == "material" else tuple(states):
+    for name in states if "radiance" in runs else runs:
         if states[name] is None:
             resume_.state_path(out, name).unlink(missing_ok=True)
     return states
@@ -271,19 +323,29 @@ def _going_on(name: str, state: dict, iterations: int) -> str:
 
 
 def _stage_radiance(
-    data, config, poses, truth, out: Path, seed, device, backend, progress, state, settings
-):
-    """Stage I and its outputs; (the field, its figures)."""
+    data: TrainingData,
+    config: cfg.RadianceConfig,
+    poses: np.ndarray,
+    truth: TruthViews,
+    out: Path,
+    seed: int,
+    device: Device,
+    backend: Backend,
+    progress: Callable[[int, int, str], None] | None,
+    state: dict | None,
+    settings: dict,
+) -> tuple[Fit, dict[str, float | None]]:
+    """Stage I and its outputs; (the fit, its figures on the views at ``poses``)."""
 
-    def evaluate(field) -> dict:
+    def evaluate(field: RadianceField) -> dict:
         views = render_views(field, poses[:HISTORY_VIEWS], data.optics, device)
-        seen = {k: v[:HISTORY_VIEWS] for k, v in truth.items()}
-        out = image_metrics(views["radiance"], seen["radiance"], "render")
-        mask = object_mask(seen)
+        seen = truth[:HISTORY_VIEWS]
+        out = image_metrics(views["radiance"], seen.radiance, "render")
+        mask = seen.object_mask()
         if mask is not None:
-            out.update(object_metrics(views["radiance"], seen["radiance"], mask))
-        if "normal" in seen:
-            out["normal_mae_deg"] = normal_mae_deg(views["normal"], seen["normal"])
+            out.update(object_metrics(views["radiance"], seen.radiance, mask))
+        if seen.normal is not None:
+            out["normal_mae_deg"] = normal_mae_deg(views["normal"], seen.normal)
         return out
 
     path = resume_.state_path(out, "radiance")
@@ -294,69 +356,54 @@ def _stage_radiance(
         device=device,
         backend=backend,
         progress=progress,
-        evaluate=evaluate if "radiance" in truth else None,
+        evaluate=evaluate if truth.radiance is not None else None,
         resume=state,
         save_state=lambda s: resume_.save_state(path, s, settings),
     )
-    field, log = fit.field, fit.log
+    field = fit.field
     views = render_views(field, poses, data.optics, device)
-    result: dict = metrics(views, truth) if truth else {}
-    cc = fit_color_correction(views["radiance"], truth["radiance"]) if "radiance" in truth else None
-    result.update(
-        {
-            "iterations": fit.steps,
-            "gaussians": len(field.gaussians),
-            "device": device,
-            "backend": backend,
-            "interrupted": fit.interrupted,
-            "history": fit.history,
-        }
-    )
+    scored = bool(truth.maps())
+    figures = metrics(views, truth) if scored else {}
+    cc = None if truth.radiance is None else fit_color_correction(views["radiance"], truth.radiance)
     write_ply(field, out / "gaussians.ply")
-    write_views(views, out / "renders", "test" if truth else "path", cc)
-    save_checkpoint(
-        field,
-        cfg.to_dict(config),
-        {"stage": "radiance", "log": [vars(x) for x in log]},
-        out / "checkpoint" / "radiance.pt",
-    )
+    write_views(views, out / "renders", "test" if scored else "path", cc)
+    save_checkpoint(field, cfg.to_dict(config), out / "checkpoint" / "radiance.pt")
     if not fit.interrupted:
         path.unlink(missing_ok=True)
-    return field, result
+    return fit, figures
 
 
 def _material_outputs(
-    fit, radiance, poses, truth, optics, environment, out: Path, device, ablate
-) -> dict:
+    fit: MaterialFit,
+    radiance: RadianceField,
+    poses: np.ndarray,
+    truth: TruthViews,
+    optics: SensorOptics,
+    environment: np.ndarray | None,
+    out: Path,
+    device: Device,
+) -> dict[str, float | None]:
     """Stage II's renders, light, relit views, checkpoint; its figures, with what stage I's
     radiance (``radiance``, the field) reaches in their place."""
     field = fit.field
     views = render_views(field, poses, optics, device)
-    result: dict = {}
-    before = render_views(radiance, poses, optics, device)["radiance"] if truth else None
-    if truth:
-        result.update(material_metrics(views, truth, before))
-    name = "test" if truth else "path"
-    cc = fit_color_correction(views["radiance"], truth["radiance"]) if "radiance" in truth else None
+    scored = bool(truth.maps())
+    figures: dict[str, float | None] = {}
+    before = render_views(radiance, poses, optics, device)["radiance"] if scored else None
+    if scored:
+        figures.update(material_metrics(views, truth, before))
+    name = "test" if scored else "path"
+    cc = None if truth.radiance is None else fit_color_correction(views["radiance"], truth.radiance)
     write_views(views, out / "renders" / "material", name, cc)
     light = mip_chain(field.light.radiance_faces().detach())
     write_image(environment_image(light), out / "environment.png")
     if environment is not None:
         new = light_from_image(environment, light[0].shape[-1], device)
         relit = render_views(field, poses, optics, device, new)
-        if "relit_radiance" in truth:
-            result.update(relit_metrics(relit["radiance"], truth, before))
+        if truth.relit_radiance is not None:
+            figures.update(relit_metrics(relit["radiance"], truth, before))
         for i, image in enumerate(relit["radiance"]):
             write_image(image, out / "renders" / "relit" / f"{name}_{i:03d}.png")
         write_image(environment_image(new), out / "renders" / "relit" / "environment.png")
-    save_material_checkpoint(
-        field, {"log": [dataclasses.asdict(x) for x in fit.log]}, out / "checkpoint" / "material.pt"
-    )
-    result.update(
-        {
-            "material_iterations": fit.steps,
-            "effects": {**field.effects, **{k: k not in ablate for k in ABLATIONS}},
-            "relit": environment is not None,
-        }
-    )
-    return result
+    save_material_checkpoint(field, out / "checkpoint" / "material.pt")
+    return figures

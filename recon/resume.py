@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from evcap.errors import InputError
+from evcap.records import Calibration, Poses
 from evcap.session import Session
 
 
@@ -51,13 +52,16 @@ def session_fingerprint(session: Session) -> str:
     the calibration (a digest)."""
     digest = hashlib.sha1()
     digest.update(repr((session.n_events, session.time_range())).encode())
-    calibration = ("K", "dist", "threshold_on", "threshold_off", "hot_pixels")
-    for group, names in (("poses", ("t", "T_world_cam")), ("calibration", calibration)):
-        if group in session.groups:
-            g = session.group(group)
-            for name in names:
-                if name in g:
-                    digest.update(np.ascontiguousarray(g[name][()]).tobytes())
+    arrays: list[np.ndarray | None] = []
+    if Poses.present(session):
+        poses = Poses.read(session)
+        arrays += [poses.t, poses.T_world_cam]
+    if Calibration.present(session):
+        c = Calibration.read(session)
+        arrays += [c.K, c.dist, c.threshold_on, c.threshold_off, c.hot_pixels]
+    for a in arrays:
+        if a is not None:
+            digest.update(np.ascontiguousarray(a).tobytes())
     return digest.hexdigest()
 
 

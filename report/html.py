@@ -8,6 +8,7 @@ A section whose data is not there says so in one line.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import re
@@ -21,7 +22,15 @@ from pathlib import Path
 import numpy as np
 
 from evcap.errors import InputError, InputNotFoundError
-from evcap.records import Calibration
+from evcap.records import (
+    Calibration,
+    Figures,
+    GroundTruth,
+    Poses,
+    ReconstructionResult,
+    TruthViews,
+)
+from evcap.records.result import RUN, STAGE_I, STAGE_II
 from evcap.report.images import (
     colormap,
     depth_image,
@@ -57,61 +66,23 @@ MAX_VIEWS = 3  # test views shown side by side with the truth
 VIEW_PX = 200  # displayed width of each view's maps
 MAP_PX = 346  # displayed width of a calibration map
 
-# metrics.json keys: (readable name, unit, group); keys not listed show as they are
-METRICS = {
-    "object_psnr_cc": ("object PSNR, color-corrected", "dB", "stage I (radiance)"),
-    "object_psnr_constant": (
-        "object PSNR of the best constant color (no object)",
-        "dB",
-        "stage I (radiance)",
-    ),
-    "object_ssim_cc": ("object SSIM, color-corrected", "", "stage I (radiance)"),
-    "render_psnr": ("render PSNR", "dB", "stage I (radiance)"),
-    "render_ssim": ("render SSIM", "", "stage I (radiance)"),
-    "render_psnr_cc": ("render PSNR, color-corrected", "dB", "stage I (radiance)"),
-    "render_ssim_cc": ("render SSIM, color-corrected", "", "stage I (radiance)"),
-    "blur_psnr": ("PSNR of the truth blurred by 25 px (whole image)", "dB", "stage I (radiance)"),
-    "lpips": ("LPIPS (AlexNet)", "", "stage I (radiance)"),
-    "depth_rel_err": ("depth error, share of the distance", "fraction", "stage I (radiance)"),
-    "depth_abs_err": ("depth error, mean absolute", "scene units", "stage I (radiance)"),
-    "radiance_normal_mae_deg": ("normal error, mean angle", "deg", "stage I (radiance)"),
-    "iterations": ("iterations", "", "stage I (radiance)"),
-    "gaussians": ("Gaussians", "", "stage I (radiance)"),
-    "seconds": ("time", "s", "stage I (radiance)"),
-    "normal_mae_deg": ("normal error, mean angle", "deg", "stage II (material)"),
-    "pbr_render_psnr": ("shaded render PSNR", "dB", "stage II (material)"),
-    "pbr_render_ssim": ("shaded render SSIM", "", "stage II (material)"),
-    "pbr_render_psnr_cc": ("shaded render PSNR, color-corrected", "dB", "stage II (material)"),
-    "pbr_render_ssim_cc": ("shaded render SSIM, color-corrected", "", "stage II (material)"),
-    "base_color_psnr": ("base color PSNR", "dB", "stage II (material)"),
-    "base_color_ssim": ("base color SSIM", "", "stage II (material)"),
-    "base_color_psnr_cc": ("base color PSNR, color-corrected", "dB", "stage II (material)"),
-    "base_color_ssim_cc": ("base color SSIM, color-corrected", "", "stage II (material)"),
-    "base_color_psnr_cc_baseline": (
-        "stage I's radiance taken as the base color, PSNR color-corrected",
-        "dB",
-        "stage II (material)",
-    ),
-    "base_color_psnr_cc_shadow": ("base color PSNR in shadows", "dB", "stage II (material)"),
-    "shadow_share": ("surface in shadow", "fraction", "stage II (material)"),
-    "base_color_psnr_cc_bleeding": (
-        "base color PSNR where color bleeds",
-        "dB",
-        "stage II (material)",
-    ),
-    "bleeding_share": ("surface with color bleeding", "fraction", "stage II (material)"),
-    "roughness_mae": ("roughness error, mean absolute", "", "stage II (material)"),
-    "material_iterations": ("iterations", "", "stage II (material)"),
-    "material_seconds": ("time", "s", "stage II (material)"),
-    "effects": ("effects modelled", "", "stage II (material)"),
-    "relit": ("relit under a new light", "", "stage II (material)"),
-    "views": ("views evaluated", "", "run"),
-    "preset": ("preset", "", "run"),
-    "seed": ("seed", "", "run"),
-    "zero_events": ("pixels without events", "", "run"),
-    "device": ("device", "", "run"),
-    "backend": ("rasterizer", "", "run"),
-    "interrupted": ("interrupted (Ctrl-C)", "", "run"),
+# the run's fields of the result, as shown: (readable name, unit, group); the figures describe
+# themselves (evcap.records.Figures)
+RUN_FIELDS = {
+    "iterations": ("iterations", "", STAGE_I),
+    "gaussians": ("Gaussians", "", STAGE_I),
+    "seconds": ("time", "s", STAGE_I),
+    "material_iterations": ("iterations", "", STAGE_II),
+    "material_seconds": ("time", "s", STAGE_II),
+    "effects": ("effects modelled", "", STAGE_II),
+    "relit": ("relit under a new light", "", STAGE_II),
+    "views": ("views evaluated", "", RUN),
+    "preset": ("preset", "", RUN),
+    "seed": ("seed", "", RUN),
+    "zero_events": ("pixels without events", "", RUN),
+    "device": ("device", "", RUN),
+    "backend": ("rasterizer", "", RUN),
+    "interrupted": ("interrupted (Ctrl-C)", "", RUN),
 }
 
 STYLE = """
@@ -141,7 +112,7 @@ def write_report(out: str | Path, session: str | Path | None = None) -> Path:
     out = Path(out)
     config = _read_config(out)
     session_path = _session_path(out, config, session)
-    metrics, metrics_note = _read_metrics(out)
+    result, result_note = _read_result(out)
     with Session.open(session_path) as s:
         bodies = {
             "session": _session_section(s, config),
@@ -151,8 +122,8 @@ def write_report(out: str | Path, session: str | Path | None = None) -> Path:
             "maps": _maps_section(out, s),
         }
     bodies["relit"] = _relit_section(out)
-    bodies["metrics"] = metrics_note or _metrics_section(metrics)
-    bodies["progress"] = _progress_section(out, metrics)
+    bodies["metrics"] = result_note or _metrics_section(result)
+    bodies["progress"] = _progress_section(result or ReconstructionResult())
     path = out / REPORT
     path.write_text(_page(out, bodies), encoding="utf-8")
     return path
@@ -206,18 +177,12 @@ def _session_path(out: Path, config: dict, session: str | Path | None) -> Path:
     )
 
 
-def _read_metrics(out: Path) -> tuple[dict, str]:
-    """(metrics.json, "") or ({}, a note saying why there are none)."""
-    path = out / "metrics.json"
-    if not path.exists():
-        return {}, _missing(f"{path.name} is not there: the reconstruction did not finish.")
+def _read_result(out: Path) -> tuple[ReconstructionResult | None, str]:
+    """(OUT's result, "") or (None, a note saying why there is none)."""
     try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        return {}, _missing(f"{path.name} is not readable JSON ({e}).")
-    if not isinstance(data, dict):
-        return {}, _missing(f"{path.name} does not hold a table of metrics.")
-    return data, ""
+        return ReconstructionResult.read(out), ""
+    except InputError as e:
+        return None, _missing(str(e))
 
 
 # -- small pieces of HTML --------------------------------------------------------------------
@@ -301,16 +266,19 @@ def _session_section(s: Session, config: dict) -> str:
 
 
 def _calibration_section(s: Session) -> str:
-    if "calibration" not in s.groups:
+    if not Calibration.present(s):
         return _missing("The session has no /calibration group (run `evcap calibrate` on it).")
-    g = s.group("calibration")
-    a = g.attrs
-    rows = [("source", str(a.get("source", "unknown")))]
+    try:
+        cal = Calibration.read(s)
+    except InputError as e:
+        return _missing(f"The calibration cannot be read: {e}")
+    notes = cal.notes
+    rows = [("source", cal.source)]
     for key in ("intrinsics_source", "threshold_source"):
-        if key in a:
-            rows.append((key.replace("_", " "), str(a[key])))
-    if "K" in g:
-        K = g["K"][()]
+        if key in notes:
+            rows.append((key.replace("_", " "), str(notes[key])))
+    if cal.K is not None:
+        K = cal.K
         rows.append(
             (
                 "intrinsics K",
@@ -318,30 +286,26 @@ def _calibration_section(s: Session) -> str:
                 f"cy {_number(K[1, 2])} px",
             )
         )
-        dist = Calibration.read(s).dist
-        coefficients = " ".join(f"{d:+.4g}" for d in dist) if len(dist) else "none"
-        rows.append(("distortion", f"{a.get('distortion_model', 'unknown')}: {coefficients}"))
+        coefficients = " ".join(f"{d:+.4g}" for d in cal.dist) if len(cal.dist) else "none"
+        rows.append(("distortion", f"{cal.distortion_model}: {coefficients}"))
     else:
         rows.append(("intrinsics", "not measured"))
-    # the simulator's truth names it reprojection_error_px
-    rms = a.get("rms_reprojection_px", a.get("reprojection_error_px"))
-    rows.append(("RMS reprojection error", f"{_number(rms)} px"))
-    if "view_rms_px" in g:
-        rows.append(("board views used", f"{len(g['view_rms_px'])}"))
-    for key, name, unit in (
-        ("refractory_period_us", "refractory period", "µs"),
-        ("background_activity_hz", "background activity", "Hz per pixel"),
-        ("shot_noise_hz", "shot noise", "Hz per pixel"),
-        ("threshold_confident_share", "pixels with confident thresholds", "fraction"),
+    rows.append(("RMS reprojection error", f"{_number(cal.rms_reprojection_px)} px"))
+    if cal.views is not None:
+        rows.append(("board views used", f"{len(cal.views.rms_px)}"))
+    for value, name, unit in (
+        (cal.refractory_period_us, "refractory period", "µs"),
+        (cal.background_activity_hz, "background activity", "Hz per pixel"),
+        (cal.shot_noise_hz, "shot noise", "Hz per pixel"),
+        (notes.get("threshold_confident_share"), "pixels with confident thresholds", "fraction"),
     ):
-        if key in a:
-            rows.append((name, f"{_number(a[key])} {unit}"))
-    hot = g["hot_pixels"][()].astype(bool) if "hot_pixels" in g else None
-    if hot is not None:
-        rows.append(("hot pixels", f"{int(hot.sum()):,}"))
-    if "warnings" in a:
-        rows.append(("warnings", "; ".join(_json_list(a["warnings"]))))
-    return _table(rows) + _calibration_maps(g, hot)
+        if value is not None:
+            rows.append((name, f"{_number(value)} {unit}"))
+    if cal.hot_pixels is not None:
+        rows.append(("hot pixels", f"{int(cal.hot_pixels.sum()):,}"))
+    if "warnings" in notes:
+        rows.append(("warnings", "; ".join(_json_list(notes["warnings"]))))
+    return _table(rows) + _calibration_maps(cal)
 
 
 def _json_list(raw: object) -> list[str]:
@@ -352,9 +316,10 @@ def _json_list(raw: object) -> list[str]:
     return [str(v) for v in value] if isinstance(value, list) else [str(value)]
 
 
-def _calibration_maps(g, hot: np.ndarray | None) -> str:
+def _calibration_maps(cal: Calibration) -> str:
     figures = []
-    maps = [g[k][()].astype(np.float64) for k in ("threshold_on", "threshold_off") if k in g]
+    hot = cal.hot_pixels
+    maps = [m.astype(np.float64) for m in (cal.threshold_on, cal.threshold_off) if m is not None]
     if len(maps) == 2:
         # one range for both, so that ON and OFF compare at a glance
         lo, hi = value_range(np.concatenate([m.ravel() for m in maps]))
@@ -368,8 +333,8 @@ def _calibration_maps(g, hot: np.ndarray | None) -> str:
                     lo, hi, "log"
                 )
             figures.append(_figure(png_data_uri(colormap(m, lo, hi)), caption, MAP_PX))
-    if "threshold_confidence" in g:
-        c = g["threshold_confidence"][()].astype(np.float64)
+    if cal.threshold_confidence is not None:
+        c = cal.threshold_confidence.astype(np.float64)
         share = float((c >= 0.5).mean()) if c.size else 0.0
         figures.append(
             _figure(
@@ -379,8 +344,8 @@ def _calibration_maps(g, hot: np.ndarray | None) -> str:
                 MAP_PX,
             )
         )
-    if "event_rate_hz" in g:
-        rate = np.log10(np.maximum(g["event_rate_hz"][()].astype(np.float64), 1e-3))
+    if cal.event_rate_hz is not None:
+        rate = np.log10(np.maximum(cal.event_rate_hz.astype(np.float64), 1e-3))
         lo, hi = value_range(rate, (1, 99.9))
         image = colormap(rate, lo, hi)
         if hot is not None and hot.shape == rate.shape:
@@ -398,7 +363,7 @@ def _calibration_maps(g, hot: np.ndarray | None) -> str:
         figures.append(_figure(png_data_uri(image), f"{int(hot.sum())} hot pixels", MAP_PX))
     if not figures:
         return _missing("The calibration holds no per-pixel maps.")
-    if "event_rate_hz" not in g:
+    if cal.event_rate_hz is None:
         figures.append(_missing("No event-rate map (the calibration did not measure the noise)."))
     return "<div>" + "".join(figures) + "</div>"
 
@@ -408,32 +373,27 @@ def _calibration_maps(g, hot: np.ndarray | None) -> str:
 
 def _trajectory_section(s: Session) -> str:
     from evcap.poses.align import apply_similarity, pose_errors
-    from evcap.records import Poses
 
-    if "poses" not in s.groups:
+    if not Poses.present(s):
         return _missing("The session has no /poses group (run `evcap poses` on it).")
-    g = s.group("poses")
-    t, T = g["t"][()], g["T_world_cam"][()]
-    source = str(g.attrs.get("source", "unknown"))
-    arbitrary = "arbitrary" in str(g.attrs.get("scale", ""))
-    rows = [("source", source), ("poses", f"{len(t):,}")]
-    if "scale" in g.attrs:
-        rows.append(("scale", str(g.attrs["scale"])))
+    try:
+        poses = Poses.read(s)
+        truth = GroundTruth.read(s).poses() if GroundTruth.present(s) else None
+    except InputError as e:
+        return _missing(f"The poses cannot be read: {e}")
+    t, T, source, arbitrary = poses.t, poses.T_world_cam, poses.source, poses.arbitrary_scale
+    rows = [("source", source), ("poses", f"{len(t):,}"), ("scale", poses.scale)]
     parts: list[str] = []
-    truth = None
-    if "gt" in s.groups and "T_world_cam" in s.group("gt") and "t" in s.group("gt"):
-        truth = s.group("gt")["t"][()], s.group("gt")["T_world_cam"][()]
     estimate = Track("poses", T[:, :3, 3], COLORS[0], T[:, :3, 2])
     tracks = [estimate]
     units = "arbitrary units" if arbitrary else "scene units"
     if truth is not None and source == "ground truth":
         parts.append("<p>The poses are the simulator's truth: nothing to compare.</p>")
     elif truth is not None:
-        t_true, T_true = truth
+        t_true, T_true = truth.t, truth.T_world_cam
         try:
-            track = Poses(t, T)
-            inside = (t_true >= track.start) & (t_true <= track.end)
-            errors = pose_errors(track.at(t_true[inside]), T_true[inside], by="poses")
+            inside = (t_true >= poses.start) & (t_true <= poses.end)
+            errors = pose_errors(poses.at(t_true[inside]), T_true[inside], by="poses")
         except InputError as e:
             parts.append(_missing(f"The poses cannot be compared with the truth: {e}"))
         else:
@@ -481,7 +441,7 @@ def _trajectory_section(s: Session) -> str:
                 + "</div>"
             )
     else:
-        parts.append("<p>The session has no true poses (/gt/T_world_cam) to compare with.</p>")
+        parts.append("<p>The session has no true poses (/gt) to compare with.</p>")
     note = (
         "<p>Camera centres; strokes show where a few of the cameras look, a dot where the path "
         "starts. Simulated worlds have z up.</p>"
@@ -503,10 +463,9 @@ def _edges_section(s: Session, config: dict) -> str:
         return _missing("The session is shorter than one edge map's slice of events.")
     w, h = s.sensor.width, s.sensor.height
     hot = np.zeros(w * h, bool)
-    if "calibration" in s.groups and "hot_pixels" in s.group("calibration"):
-        stored = s.group("calibration")["hot_pixels"][()]
-        if stored.size == hot.size:
-            hot = stored.ravel().astype(bool)
+    if Calibration.present(s):
+        with contextlib.suppress(InputError):  # the calibration's own section says why
+            hot = Calibration.read(s).hot().ravel()
     times = np.linspace(span[0] + slice_us, span[1], EDGE_MAPS + 2)[1:-1].astype(np.int64)
     figures = []
     for t in times:
@@ -542,10 +501,13 @@ def _pairs(figures: list[str]) -> str:
 
 
 def _maps_section(out: Path, s: Session) -> str:
-    from evcap.recon.evaluate import test_views
-
-    _, truth = test_views(s)
-    stages, unreadable = [], []
+    truth, unreadable = None, []
+    if GroundTruth.present(s):
+        try:
+            truth = GroundTruth.read(s).held_out
+        except InputError as e:
+            unreadable.append(_missing(f"The session's truth cannot be read: {e}"))
+    stages = []
     for label, folder in (
         ("stage I: radiance field", out / "renders"),
         ("stage II: material, shaded", out / "renders" / "material"),
@@ -575,10 +537,10 @@ def _maps_section(out: Path, s: Session) -> str:
     kind = stages[0][1]
     intro = (
         "Held-out test views beside the session's truth."
-        if truth
+        if truth is not None
         else "Views along the camera path (the session has no truth for them)."
     )
-    if "radiance" in truth:
+    if truth is not None and truth.radiance is not None:
         intro += (
             " Radiance is shown after a per-channel gain and offset fitted to the truth "
             "(events give radiance only up to a gain per channel) on the object's pixels where "
@@ -598,38 +560,35 @@ MAP_COLUMNS = (
 )
 
 
-def _view_table(i: int, stages: list, truth: dict) -> str:
+def _view_table(i: int, stages: list, truth: TruthViews | None) -> str:
     from evcap.images import fit_color_correction
 
+    known = truth.maps() if truth is not None else {}
     rows = []
     all_depths = [v["depth"][i] for _, _, v in stages if "depth" in v and len(v["depth"]) > i]
-    if "depth" in truth and len(truth["depth"]) > i:
-        all_depths.append(truth["depth"][i])
+    if truth is not None and truth.depth is not None and len(truth) > i:
+        all_depths.append(truth.depth[i])
     lo, hi = depth_range(*all_depths)
-    columns = [k for k, _ in MAP_COLUMNS if any(k in v for _, _, v in stages) or k in truth]
+    columns = [k for k, _ in MAP_COLUMNS if any(k in v for _, _, v in stages) or k in known]
     for label, _, views in stages:
         images = {}
         for key in columns:
             if key not in views or len(views[key]) <= i:
                 continue
             value = views[key][i]
-            if key == "radiance" and "radiance" in truth:
-                pred, gt = views["radiance"], truth["radiance"]
+            if key == "radiance" and truth is not None and truth.radiance is not None:
+                pred, gt = views["radiance"], truth.radiance
                 if pred.shape == gt.shape and np.isfinite(pred).all():
                     # fitted where object_psnr_cc is, on the object, when the truth says where
-                    surface = truth["depth"] > 0 if "depth" in truth else None
+                    surface = truth.object_mask()
                     if surface is not None and surface.shape == pred.shape[:-1] and surface.any():
                         pred, gt = pred[surface], gt[surface]
                     cc = fit_color_correction(pred, gt)
                     value = value * cc[:, 0] + cc[:, 1]
             images[key] = _map_image(key, value, lo, hi)
         rows.append((label, images))
-    if truth:
-        images = {
-            key: _map_image(key, truth[key][i], lo, hi)
-            for key in columns
-            if key in truth and len(truth[key]) > i
-        }
+    if truth is not None and len(truth) > i:
+        images = {key: _map_image(key, known[key][i], lo, hi) for key in columns if key in known}
         rows.append(("truth", images))
     names = dict(MAP_COLUMNS)
     head = "".join(f"<th>{escape(names[k])}</th>" for k in columns)
@@ -692,40 +651,36 @@ def _relit_section(out: Path) -> str:
 # -- 7. metrics ------------------------------------------------------------------------------
 
 
-def _metrics_section(metrics: dict) -> str:
-    if not metrics:
-        return _missing("metrics.json is empty.")
-    names = dict(METRICS)
-    if "radiance_normal_mae_deg" not in metrics:  # stage I only: its normals are the last
-        names["normal_mae_deg"] = ("normal error, mean angle", "deg", "stage I (radiance)")
-    keys = [k for k in METRICS if k in metrics] + [k for k in metrics if k not in METRICS]
-    groups: dict[str, list[str]] = {}
-    for key in keys:
-        if key == "history":
-            continue  # plotted in the next section
-        value = metrics[key]
-        name, unit, group = names.get(key, (key.replace("_", " "), "", "other"))
+def _metrics_section(result: ReconstructionResult) -> str:
+    rows = []
+    for key, value in result.figures.measured().items():
+        name, unit, group = Figures.describe(key)
+        if key == "normal_mae_deg" and result.figures.radiance_normal_mae_deg is None:
+            group = STAGE_I  # stage I only: its normals are the last
+        rows.append((group, name, f'<td class="num">{escape(_number(value))}</td>', unit))
+    for key, (name, unit, group) in RUN_FIELDS.items():
+        value = getattr(result, key)
+        if value is None:
+            continue
         if isinstance(value, dict):
-            text = ", ".join(
-                f"{k}: {'on' if v is True else 'off' if v is False else _number(v)}"
-                for k, v in value.items()
-            )
+            text = ", ".join(f"{k}: {'on' if v else 'off'}" for k, v in value.items())
             cell = f"<td>{escape(text)}</td>"
-        elif isinstance(value, list):
-            cell = f"<td>{len(value)} entries</td>"
-        elif value is None or (isinstance(value, int | float) and not isinstance(value, bool)):
+        elif isinstance(value, int | float) and not isinstance(value, bool):
             cell = f'<td class="num">{escape(_number(value))}</td>'
         else:
             cell = f"<td>{escape(_number(value))}</td>"
-        groups.setdefault(group, []).append(
+        rows.append((group, name, cell, unit))
+    if not rows:
+        return _missing("metrics.json holds no figures.")
+    body = ""
+    for group in (STAGE_I, STAGE_II, RUN):
+        lines = [
             f"<tr><td>{escape(name)}</td>{cell}<td>{escape(unit)}</td></tr>"
-        )
-    order = ["stage I (radiance)", "stage II (material)", "run", "other"]
-    body = "".join(
-        f'<tr><th class="group" colspan="3">{escape(g)}</th></tr>' + "".join(groups[g])
-        for g in order
-        if g in groups
-    )
+            for g, name, cell, unit in rows
+            if g == group
+        ]
+        if lines:
+            body += f'<tr><th class="group" colspan="3">{escape(group)}</th></tr>' + "".join(lines)
     note = (
         "<p>PSNR and SSIM compare the sRGB images with the truth; color-corrected: after a "
         "per-channel gain and offset fitted by least squares.</p>"
@@ -736,19 +691,11 @@ def _metrics_section(metrics: dict) -> str:
 # -- 8. accuracy versus time -----------------------------------------------------------------
 
 
-def _progress_section(out: Path, metrics: dict) -> str:
+def _progress_section(result: ReconstructionResult) -> str:
     plots, notes = [], []
-    logs = {}
-    for stage, name in (("stage I", "radiance.pt"), ("stage II", "material.pt")):
-        path = out / "checkpoint" / name
-        if path.exists():
-            log, note = _training_log(path)
-            if log:
-                logs[stage] = log
-            if note:
-                notes.append(note)
-    if "stage I" in logs:
-        log = logs["stage I"]
+    logs = result.training_log
+    if logs.get("radiance"):
+        log = logs["radiance"]
         plots.append(
             line_plot(
                 [
@@ -763,9 +710,9 @@ def _progress_section(out: Path, metrics: dict) -> str:
             )
         )
     else:
-        notes.append(_missing("No stage-I training log (checkpoint/radiance.pt)."))
-    if "stage II" in logs:
-        log = logs["stage II"]
+        notes.append(_missing("No stage-I training log in metrics.json."))
+    if logs.get("material"):
+        log = logs["material"]
         plots.append(
             line_plot(
                 [
@@ -779,8 +726,8 @@ def _progress_section(out: Path, metrics: dict) -> str:
                 log_y=True,
             )
         )
-    history = metrics.get("history")
-    if isinstance(history, list) and history and all(isinstance(h, dict) for h in history):
+    history = result.history
+    if history and all(isinstance(h, dict) for h in history):
         seconds = np.array([_float(h.get("seconds")) for h in history])
         series = [
             Series(label, seconds, np.array([_float(h.get(key)) for h in history]), color, dashed)
@@ -810,20 +757,6 @@ def _progress_section(out: Path, metrics: dict) -> str:
             )
         )
     return "".join(notes) + '<div class="plots">' + "".join(plots) + "</div>"
-
-
-def _training_log(path: Path) -> tuple[list[dict], str]:
-    """(the "log" entries of a checkpoint, "") or ([], a note saying why there are none)."""
-    import torch
-
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # noqa: BLE001  any unreadable file: say so, keep the page
-        return [], _missing(f"{path.name} is not readable ({type(e).__name__}: {e}).")
-    log = state.get("log") if isinstance(state, dict) else None
-    if not isinstance(log, list) or not log or not all(isinstance(x, dict) for x in log):
-        return [], _missing(f"{path.name} holds no training log.")
-    return log, ""
 
 
 def _float(value: object) -> float:

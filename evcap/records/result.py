@@ -9,14 +9,12 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 
 from evcap.errors import InputError
 
 RESULT_FILE = "metrics.json"
-Stage = Literal["radiance", "material", "all"]
 STAGE_I, STAGE_II, RUN = "stage I (radiance)", "stage II (material)", "run"
 
 
@@ -26,7 +24,8 @@ def _figure(name: str, unit: str, stage: str):
 
 @dataclass
 class Figures:
-    """The accuracy figures on the held-out views (None: not measured, e.g. no truth). Images
+    """The accuracy figures on the held-out views (None: not measured, e.g. no truth; NaN:
+    measured without a number, e.g. LPIPS without its weights). Images
     are compared in sRGB; ``_cc``: after a per-channel gain and offset fitted by least squares;
     ``object_``: on the object's pixels only."""
 
@@ -85,6 +84,15 @@ class Figures:
     )
 
     @classmethod
+    def of(cls, figures: dict[str, float | None]) -> Figures:
+        """The figures named in ``figures``; one given as None was measured without a number
+        (NaN, shown as n/a), unlike one not given at all."""
+        unknown = set(figures) - set(cls.names())
+        if unknown:
+            raise ValueError(f"unknown figures {sorted(unknown)}: describe them in Figures")
+        return cls(**{k: math.nan if v is None else float(v) for k, v in figures.items()})
+
+    @classmethod
     def names(cls) -> tuple[str, ...]:
         return tuple(f.name for f in dataclasses.fields(cls))
 
@@ -131,16 +139,17 @@ class ReconstructionResult:
     # -- metrics.json --------------------------------------------------------------------------
 
     def to_json(self) -> dict:
-        """The flat JSON object of metrics.json: the figures beside the run's fields."""
-        out = {k: v for k, v in vars(self).items() if k != "figures"}
+        """The flat JSON object of metrics.json: the figures beside the run's fields (those
+        that are set: a stage-I run has no stage-II fields)."""
+        out = {k: v for k, v in vars(self).items() if k != "figures" and v is not None}
         out.update(self.figures.measured())
         return _clean(out)
 
     @classmethod
     def from_json(cls, data: dict) -> ReconstructionResult:
         names = {f.name for f in dataclasses.fields(cls)} - {"figures"}
-        figures = {k: data[k] for k in Figures.names() if k in data}
-        return cls(figures=Figures(**figures), **{k: v for k, v in data.items() if k in names})
+        figures = Figures.of({k: data[k] for k in Figures.names() if k in data})
+        return cls(figures=figures, **{k: v for k, v in data.items() if k in names})
 
     def write(self, out: str | Path) -> Path:
         path = Path(out) / RESULT_FILE

@@ -155,3 +155,32 @@ def test_hard_cases_stay_finite(stage_one, case, monkeypatch):
     T = data.track.at(data.windows.frame_times[:1])[0]
     with torch.no_grad():
         assert torch.isfinite(m.render(T, data.grid).color).all()
+
+
+def test_stage_two_losses_leave_out_the_ablated_terms(stage_one):
+    _, data, config = stage_one
+    radiance = new_field(data, config, 0, "cpu", "torch")
+    mconfig = cfg.material_preset("tiny", edge_frames=4)
+    field = material.new_material_field(radiance, data, mconfig)
+    frames = np.array([0, 3, 9])
+    weights = {int(f): torch.ones(data.grid.height, data.grid.width) for f in frames}
+
+    @torch.no_grad()
+    def target(frame: int, T: np.ndarray) -> torch.Tensor:
+        return radiance.render(T, data.grid).color
+
+    def losses(ablate: frozenset) -> tuple[float, dict[str, float]]:
+        total, terms = material._losses(
+            field, data, config, mconfig, frames, target, weights, ablate
+        )
+        return total.item(), terms
+
+    total, terms = losses(frozenset())
+    weighted = {"distill": mconfig.distill_weight, "anchor": mconfig.anchor_weight}
+    weighted["tv"] = mconfig.tv_weight
+    assert terms["distill"] > 0 and terms["tv"] > 0
+    expected = terms["event"] + sum(w * terms[k] for k, w in weighted.items())
+    assert total == pytest.approx(expected, rel=1e-5)
+    alone, left = losses(frozenset(cfg.ABLATIONS))
+    assert alone == pytest.approx(terms["event"], rel=1e-6)
+    assert left == {"event": terms["event"], "distill": 0.0, "anchor": 0.0, "tv": 0.0}

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from evcap.recon.metrics import blur_psnr, depth_rel_err, object_metrics, psnr, srgb
+from evcap.records import TruthViews
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +77,7 @@ def test_the_radiance_as_base_color_baseline(scene):
     base, depth = scene
     surface = depth > 0
     normal = np.where(surface[..., None], [0.0, 0.0, -1.0], 0.0).astype(np.float32)
-    truth = {"base_color": base, "normal": normal}
+    truth = TruthViews(np.tile(np.eye(4), (len(base), 1, 1)), base_color=base, normal=normal)
     views = {"base_color": base, "normal": normal}
     tint = material_metrics(views, truth, base * [0.9, 0.7, 0.4])
     assert tint["base_color_psnr_cc_baseline"] > 60

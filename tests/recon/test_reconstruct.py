@@ -86,7 +86,7 @@ def test_writes_every_output(color_result):
     ):
         assert (out / name).is_file(), name
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics.keys() == result.keys()
+    assert metrics == result.to_json()
     for key in (
         "object_psnr_cc",
         "object_ssim_cc",
@@ -115,6 +115,28 @@ def test_writes_every_output(color_result):
         assert isinstance(metrics[key], str) or np.isfinite(metrics[key]), key
     assert metrics["iterations"] == 30 and metrics["device"] == "cpu"
     assert metrics["material_iterations"] == 8
+    # the training losses, for the report: a row every 10 steps and the last
+    log = metrics["training_log"]
+    assert [x["step"] for x in log["radiance"]] == [10, 20, 30]
+    assert [x["step"] for x in log["material"]] == [8]
+    assert log["radiance"][-1].keys() == {
+        "step",
+        "loss",
+        "event",
+        "anchor",
+        "normal",
+        "gaussians",
+        "seconds",
+    }
+    assert log["material"][-1].keys() == {
+        "step",
+        "loss",
+        "event",
+        "distill",
+        "anchor",
+        "tv",
+        "seconds",
+    }
     # the accuracy-versus-time curve: held-out PSNR at evenly spaced steps, the last one's
     history = metrics["history"]
     assert [h["step"] for h in history] == [5, 10, 15, 20, 25, 30]
@@ -157,13 +179,16 @@ def test_material_stage_resumes_from_the_checkpoint(color_session, color_result,
     result = reconstruct(
         color_session, again, preset="tiny", stage="material", material_iterations=4, overwrite=True
     )
-    assert result["material_iterations"] == 4
-    assert result["gaussians"] == first["gaussians"]  # stage I untouched
+    assert result.material_iterations == 4
+    assert result.gaussians == first.gaussians  # stage I untouched
+    assert result.training_log["radiance"] == first.training_log["radiance"]
+    assert [x["step"] for x in result.training_log["material"]] == [4]
     # without --relight, the held-out views are relit by the truth's second light and scored
-    assert "relit_psnr" not in first and np.isfinite(result["relit_object_psnr_cc"])
+    figures = result.figures
+    assert first.figures.relit_psnr is None and np.isfinite(figures.relit_object_psnr_cc)
     # beside them, what no decomposition and no relighting reach
-    assert np.isfinite(result["relit_object_psnr_cc_baseline"])
-    assert np.isfinite(result["base_color_psnr_cc_baseline"])
+    assert np.isfinite(figures.relit_object_psnr_cc_baseline)
+    assert np.isfinite(figures.base_color_psnr_cc_baseline)
     with pytest.raises(InputError, match="no stage-I checkpoint"):
         reconstruct(color_session, tmp_path / "empty", preset="tiny", stage="material")
 
@@ -171,7 +196,7 @@ def test_material_stage_resumes_from_the_checkpoint(color_session, color_result,
 def test_ply_is_the_common_3dgs_layout(color_result):
     out, result = color_result
     count, names = read_ply_header(out / "gaussians.ply")
-    assert count == result["gaussians"]
+    assert count == result.gaussians
     expected = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
     assert names[: len(expected)] == expected
     assert names[-8:] == [
@@ -194,14 +219,14 @@ def test_learns_the_scene_from_events_alone(color_session, tmp_path):
     result = reconstruct(color_session, tmp_path, preset="tiny", resolution=1.0, stage="radiance")
     # the best constant image scores 16.1 dB after color correction on this scene; this run
     # scored 19.0 dB (depth error 0.197, at about 2.2 units) when it was written
-    assert result["render_psnr_cc"] > 18
-    assert result["depth_abs_err"] < 0.25
+    assert result.figures.render_psnr_cc > 18
+    assert result.figures.depth_abs_err < 0.25
 
 
 def test_checkpoint_holds_the_field(color_result):
     out, result = color_result
     state = torch.load(out / "checkpoint" / "radiance.pt", weights_only=False)
-    assert state["gaussians"]["means"].shape == (result["gaussians"], 3)
+    assert state["gaussians"]["means"].shape == (result.gaussians, 3)
 
 
 def test_refuses_to_overwrite(color_session, color_result):
@@ -214,8 +239,8 @@ def test_mono_session(tiny_scene, tmp_path_factory):
     session = simulated(tiny_scene, tmp_path_factory, "MONO")
     out = tmp_path_factory.mktemp("mono")
     result = reconstruct(session, out, preset="tiny", iterations=40, material_iterations=5)
-    assert result["iterations"] == 40 and np.isfinite(result["render_psnr_cc"])
-    assert np.isfinite(result["base_color_psnr_cc"])
+    assert result.iterations == 40 and np.isfinite(result.figures.render_psnr_cc)
+    assert np.isfinite(result.figures.base_color_psnr_cc)
 
 
 def test_cli_uncalibrated_session_is_a_clear_error(tmp_path, sample_aedat4):

@@ -52,19 +52,22 @@ def test_stage_one_goes_on_from_where_it_stopped(session, uninterrupted, tmp_pat
     whole, expected = uninterrupted
     # step 40: before the densification at step 50, which then uses the gradients seen before
     first = reconstruct(session, tmp_path, **RUN, progress=interrupt_at(40, "radiance"))
-    assert first["interrupted"] and first["iterations"] == 40
+    assert first.interrupted and first.iterations == 40
     assert state_path(tmp_path, "radiance").exists()
-    assert "material_iterations" not in first  # stage II did not start
+    assert first.material_iterations is None  # stage II did not start
     said = []
     result = reconstruct(session, tmp_path, **RUN, say=said.append)
     assert said and "going on from step 40 of 150" in said[0]
-    assert not result["interrupted"] and result["iterations"] == 150
-    assert result["gaussians"] == expected["gaussians"]
+    assert not result.interrupted and result.iterations == 150
+    assert result.gaussians == expected.gaussians
     for name, value in gaussians(whole).items():
         torch.testing.assert_close(gaussians(tmp_path)[name], value)
     for name, value in material(whole).items():
         torch.testing.assert_close(material(tmp_path)[name], value)
-    assert [h["step"] for h in result["history"]] == [h["step"] for h in expected["history"]]
+    assert [h["step"] for h in result.history] == [h["step"] for h in expected.history]
+    # the training log goes on too: the rows before the interruption, then the rest
+    steps = [x["step"] for x in result.training_log["radiance"]]
+    assert steps == [x["step"] for x in expected.training_log["radiance"]]
     assert not state_path(tmp_path, "radiance").exists()
     with pytest.raises(InputError, match="already holds"):  # finished: nothing to go on with
         reconstruct(session, tmp_path, **RUN)
@@ -73,16 +76,19 @@ def test_stage_one_goes_on_from_where_it_stopped(session, uninterrupted, tmp_pat
 def test_stage_two_goes_on_without_running_stage_one_again(session, uninterrupted, tmp_path):
     whole, expected = uninterrupted
     first = reconstruct(session, tmp_path, **RUN, progress=interrupt_at(5, "material"))
-    assert first["interrupted"] and first["material_iterations"] == 5
+    assert first.interrupted and first.material_iterations == 5
     said = []
     result = reconstruct(session, tmp_path, **RUN, say=said.append)
     assert said == [s for s in said if s.startswith("stage II: going on from step 5 of 12")]
-    assert not result["interrupted"] and result["material_iterations"] == 12
-    assert result["iterations"] == 150  # stage I's figures kept
+    assert not result.interrupted and result.material_iterations == 12
+    assert result.iterations == 150  # stage I's figures kept
+    assert result.training_log["radiance"] == first.training_log["radiance"]
+    steps = [x["step"] for x in result.training_log["material"]]
+    assert steps == [x["step"] for x in expected.training_log["material"]]
     for name, value in material(whole).items():
         torch.testing.assert_close(material(tmp_path)[name], value)
     metrics = json.loads((tmp_path / "metrics.json").read_text())
-    assert metrics["base_color_psnr_cc"] == pytest.approx(expected["base_color_psnr_cc"])
+    assert metrics["base_color_psnr_cc"] == pytest.approx(expected.figures.base_color_psnr_cc)
 
 
 def test_other_settings_are_refused_or_started_over(session, tmp_path):
@@ -94,7 +100,7 @@ def test_other_settings_are_refused_or_started_over(session, tmp_path):
     result = reconstruct(
         session, tmp_path, **RUN, stage="radiance", seed=1, overwrite=True, say=said.append
     )
-    assert not said and result["iterations"] == 150 and not result["interrupted"]
+    assert not said and result.iterations == 150 and not result.interrupted
 
 
 def test_a_step_cut_in_two_is_not_saved(session, tmp_path, monkeypatch):
@@ -105,7 +111,7 @@ def test_a_step_cut_in_two_is_not_saved(session, tmp_path, monkeypatch):
 
     monkeypatch.setattr(densify.Densifier, "densify", cut)
     result = reconstruct(session, tmp_path, **RUN, stage="radiance")
-    assert result["interrupted"] and not state_path(tmp_path, "radiance").exists()
+    assert result.interrupted and not state_path(tmp_path, "radiance").exists()
 
 
 def test_ctrl_c_asks_to_stop_and_a_second_one_interrupts():

@@ -1,6 +1,7 @@
 """/gt and OUT/metrics.json: their records read back what they wrote."""
 
 import json
+import math
 
 import h5py
 import numpy as np
@@ -88,7 +89,8 @@ def test_result_round_trip(tmp_path):
     data = json.loads((tmp_path / "metrics.json").read_text())
     assert data["object_psnr_cc"] == 21.5 and data["normal_mae_deg"] is None
     back = ReconstructionResult.read(tmp_path)
-    assert back.figures.object_psnr_cc == 21.5 and back.figures.normal_mae_deg is None
+    assert back.figures.object_psnr_cc == 21.5 and math.isnan(back.figures.normal_mae_deg)
+    assert back.figures.depth_rel_err is None
     assert back.iterations == 100 and back.training_log == result.training_log
     assert Figures.describe("object_psnr_cc") == (
         "object PSNR, color-corrected",

@@ -12,12 +12,12 @@ import cv2
 import h5py
 import numpy as np
 import pytest
-import torch
 
 from evcap.errors import InputError
 from evcap.events import Events
 from evcap.recon.material import MaterialLog
 from evcap.recon.radiance import StepLog
+from evcap.records import TruthViews
 from evcap.report.html import SECTIONS, write_report
 from evcap.report.images import colormap, gray_image, normal_image, png_data_uri
 from evcap.report.svg import Series, Track, line_plot, nice_ticks, trajectory_views
@@ -119,11 +119,10 @@ def make_session(path: Path) -> Path:
 
 
 def make_reconstruction(out: Path, session: Path) -> Path:
-    """What `evcap reconstruct` leaves, small: settings, metrics (one NaN, one null), the
-    views' npz and PNGs, the light, relit views and the checkpoints with their logs."""
+    """What `evcap reconstruct` leaves, small: settings, metrics (one NaN, one null) with the
+    training logs, the views' npz and PNGs, the light and relit views."""
     (out / "renders" / "material").mkdir(parents=True)
     (out / "renders" / "relit").mkdir()
-    (out / "checkpoint").mkdir()
     (out / "config.toml").write_text(
         f'[reconstruct]\nsession = "{session}"\nstage = "all"\npreset = "tiny"\n\n'
         "[material]\nedge_slice_ms = 10.0\n"
@@ -143,6 +142,12 @@ def make_reconstruction(out: Path, session: Path) -> Path:
             {"step": 30, "seconds": 3.0, "render_psnr_cc": 19.0, "render_psnr": 14.0},
         ],
     }
+    log = [StepLog(s, 1 / s, 0.8 / s, 0.01, 0.1, 500, s * 0.1) for s in range(10, 60, 10)]
+    mlog = [MaterialLog(s, 0.3, 0.2, 0.05, 0.01, 0.1, s * 0.2) for s in (10, 20)]
+    metrics["training_log"] = {
+        "radiance": [vars(x) for x in log],
+        "material": [dataclasses.asdict(x) for x in mlog],
+    }
     (out / "metrics.json").write_text(json.dumps(metrics))  # NaN as JSON's NaN token
     rng = np.random.default_rng(1)
     views = {
@@ -159,13 +164,6 @@ def make_reconstruction(out: Path, session: Path) -> Path:
     image = (rng.uniform(0, 255, (H, W, 3))).astype(np.uint8)
     for name in ("environment.png", "renders/relit/test_000.png", "renders/relit/environment.png"):
         cv2.imwrite(str(out / name), image)
-    log = [StepLog(s, 1 / s, 0.8 / s, 0.01, 0.1, 500, s * 0.1) for s in range(10, 60, 10)]
-    torch.save(
-        {"config": {}, "stage": "radiance", "log": [vars(x) for x in log]},
-        out / "checkpoint" / "radiance.pt",
-    )
-    mlog = [MaterialLog(s, 0.3, 0.2, 0.05, 0.01, 0.1, s * 0.2) for s in (10, 20)]
-    torch.save({"log": [dataclasses.asdict(x) for x in mlog]}, out / "checkpoint" / "material.pt")
     return out
 
 
@@ -353,9 +351,8 @@ def test_the_radiance_is_color_corrected_on_the_objects_pixels():
     # the render is the truth at half gain on the object, a flat wrong color around it: fitted
     # over the whole image the object would come out washed out
     render = np.where(depth[..., None] > 0, 0.5 * truth, 0.9).astype(np.float32)
-    table = _view_table(
-        0, [("stage I", "test", {"radiance": render})], {"radiance": truth, "depth": depth}
-    )
+    views = TruthViews(np.eye(4)[None], radiance=truth, depth=depth)
+    table = _view_table(0, [("stage I", "test", {"radiance": render})], views)
     uri = re.search(r'src="data:image/png;base64,([^"]+)"', table).group(1)
     shown = cv2.imdecode(np.frombuffer(base64.b64decode(uri), np.uint8), cv2.IMREAD_COLOR)
     expected = srgb8(truth[0])[..., ::-1]  # OpenCV decodes BGR
