@@ -45,17 +45,18 @@ def markdown_table(rows: list[dict], columns: tuple[str, ...]) -> str:
 def session_of(scene: str) -> Path:
     """The simulator's example scene, simulated once into results/sessions/ (again when the
     renderer has changed since)."""
-    import h5py
-
+    from evcap.records import GroundTruth
+    from evcap.session import Session
     from evcap.sim.render import RENDERER_VERSION
     from evcap.sim.scene import load_scene
     from evcap.sim.simulate import simulate
 
     path = RESULTS / "sessions" / f"{scene}.h5"
     if path.exists():  # made by an older renderer: its truth is not today's
-        with h5py.File(path, "r") as f:
-            if f["gt"].attrs.get("renderer_version", 1) != RENDERER_VERSION:
-                path.unlink()
+        with Session.open(path, validate=False) as s:
+            stale = GroundTruth.read(s).renderer_version != RENDERER_VERSION
+        if stale:
+            path.unlink()
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         print(f"simulating {scene} (once) ...", flush=True)

@@ -23,6 +23,7 @@ import numpy as np
 from _common import RESULTS, machine, markdown_table
 
 from evcap.recon.reconstruct import reconstruct
+from evcap.records import GroundTruth
 from evcap.session import Session
 from evcap.sim.from_images import rays, simulate_from_images
 
@@ -63,8 +64,8 @@ def truth_agreement(session: Path, apart: int = 10) -> dict:
     (its depth there within 2 %, not occluded): the median depth disagreement (share of
     the distance) and median angle between the two views' normals (degrees)."""
     with Session.open(session) as s:
-        g = s.group("gt")
-        depth, normal, poses, K = g["depth"][:], g["normal"][:], g["T_world_cam"][:], g["K"][:]
+        truth = GroundTruth.read(s, along_path=True)
+    depth, normal, poses, K = truth.path.depth, truth.path.normal, truth.path.T_world_cam, truth.K
     h, w = depth.shape[1:]
     ray = rays(K, h, w)
     dz, angles = [], []

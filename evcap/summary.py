@@ -35,7 +35,7 @@ def summarize(session: Session, progress: Callable[[int, int], None] | None = No
         "frames": session.n_frames,
         "imu_samples": session.n_imu,
         "triggers": session.n_triggers,
-        "event_rate_hz": session.n_events / duration_s if duration_s > 0 else 0.0,
+        "mean_event_rate_hz": session.n_events / duration_s if duration_s > 0 else 0.0,
         "on_fraction": on / session.n_events if session.n_events else None,
         "groups": session.groups,
     }
@@ -53,7 +53,7 @@ def format_summary(s: dict) -> str:
         ("frames", f"{s['frames']:,}"),
         ("IMU samples", f"{s['imu_samples']:,}"),
         ("triggers", f"{s['triggers']:,}"),
-        ("event rate", f"{s['event_rate_hz'] / 1e3:,.1f} kev/s (mean)"),
+        ("event rate", f"{s['mean_event_rate_hz'] / 1e3:,.1f} kev/s (mean)"),
         ("ON fraction", on),
         ("groups", ", ".join(s["groups"])),
     ]

@@ -405,8 +405,8 @@ def check_demo(folder: Path) -> list[str]:
     truth = folder / "demo-scene" / "truth.h5"
     if (folder / "demo-scene").exists():
         try:
-            data, _, _, _ = read_truth(truth)
-            if data["test_radiance"].shape[1:3] != (H, W) or not len(data["test_T_world_cam"]):
+            held = read_truth(truth)[0].held_out_views()
+            if not len(held) or held.radiance.shape[1:3] != (H, W):
                 problems.append(f"{truth}: no held-out views of a {W} x {H} camera")
         except Exception as e:
             problems.append(f"{truth}: {e}")

@@ -34,9 +34,10 @@ import numpy as np
 from evcap.errors import InputError, InputNotFoundError
 from evcap.events import Events
 from evcap.images import srgb_to_linear
-from evcap.session import SensorInfo, SessionWriter, write_group
+from evcap.records import GroundTruth, Poses, TruthViews
+from evcap.session import SensorInfo, SessionWriter
 from evcap.sim.events import PixelArray
-from evcap.sim.sensor import ChannelMap
+from evcap.sim.sensor import ChannelMap, true_calibration
 from evcap.sim.simulate import EPOCH_US
 
 BLENDER_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -391,67 +392,37 @@ def simulate_from_images(
             prev = cur
             if progress:
                 progress(k, len(images) - 1)
-    datasets = {
-        "t": np.array(gt_t, np.int64),
-        "T_world_cam": poses,
-        "K": data.K,
-        "threshold_on": pixels.con.reshape(h, w).astype(np.float32),
-        "threshold_off": pixels.coff.reshape(h, w).astype(np.float32),
-    }
-    for name in ("radiance", "mask", "depth", "normal"):
-        if all(name in t for t in path_truth):
-            datasets[name] = np.stack([t[name] for t in path_truth])
+    path = _views(poses, path_truth)
+    held = None
     if test is not None:
-        datasets["test_T_world_cam"] = test.poses
         views = [view_truth(p, data.K, scale, background) for p in test.images]
-        if "depth" in datasets and "mask" in views[0] and not all("depth" in v for v in views):
+        if path.depth is not None and "mask" in views[0] and not all("depth" in v for v in views):
             views = [
                 {**v, **splat_truth(T, data.K, v["mask"], _nearest(T, poses, path_truth))}
                 for v, T in zip(views, test.poses, strict=True)
             ]
-        for name in ("radiance", "mask", "depth", "normal"):
-            if all(name in v for v in views):
-                datasets[f"test_{name}"] = np.stack([v[name] for v in views])
-    write_group(
-        output,
-        "gt",
-        datasets,
-        {
-            "source": "evcap simulate --from-images",
+        held = _views(test.poses, views)
+    t = np.array(gt_t, np.int64)
+    GroundTruth(
+        source="evcap simulate --from-images",
+        t=t,
+        path=path,
+        held_out=held,
+        K=data.K,
+        threshold_on=pixels.con.reshape(h, w).astype(np.float32),
+        threshold_off=pixels.coff.reshape(h, w).astype(np.float32),
+        notes={
             "images": str(transforms),
-            "radiance": f"linear RGB from the sRGB images, over a background of {background}",
-            "mask": "the images' alpha > 0.5 (the object's pixels)",
-            "depth": "camera z decoded from the depth renders (0: no surface)",
-            "normal": "camera axes, from the depth renders (0: not determined)",
+            "background": background,
             "held_out": str(held_out) if held_out is not None else "every 8th view of the path",
         },
-    )
-    write_group(
-        output,
-        "poses",
-        {"t": np.array(gt_t, np.int64), "T_world_cam": poses},
-        {
-            "source": "ground truth",
-            "frame": "camera-to-world, OpenCV camera axes",
-            "interpolation": "linear position, slerp rotation",
-        },
-    )
-    write_group(
-        output,
-        "calibration",
-        {
-            "K": data.K,
-            "dist": np.zeros(0),
-            "threshold_on": datasets["threshold_on"],
-            "threshold_off": datasets["threshold_off"],
-            "hot_pixels": np.zeros((h, w), np.uint8),
-        },
-        {
-            "source": "ground truth",
-            "distortion_model": "none",
-            "width": w,
-            "height": h,
-            "rms_reprojection_px": 0.0,
-        },
-    )
+    ).write(output)
+    Poses(t, poses, source="ground truth").write(output)
+    true_calibration(pixels, w, h, data.K).write(output)
     return n_events
+
+
+def _views(poses: np.ndarray, truth: list[dict[str, np.ndarray]]) -> TruthViews:
+    """The maps every view has (see view_truth), at each pose."""
+    names = [n for n in ("radiance", "mask", "depth", "normal") if all(n in v for v in truth)]
+    return TruthViews(poses, **{n: np.stack([v[n] for v in truth]) for n in names})

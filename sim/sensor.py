@@ -1,5 +1,6 @@
 """What the sensor makes of radiance: the log signal of each pixel's color channel, APS frames
-(exposure, shot and read noise, 10 bits) and IMU samples (from the camera's path)."""
+(exposure, shot and read noise, 10 bits) and IMU samples (from the camera's path); the
+sensor's calibration, measured (a calibrated session's) or true (the simulated one's)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ import numpy as np
 
 from evcap.errors import InputError
 from evcap.events import pixel_channels
+from evcap.records import Calibration
+from evcap.sim.events import PixelArray
 from evcap.sim.scene import ApsSpec, ImuSpec
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
@@ -67,29 +70,50 @@ def measured_sensor(
     from evcap.session import Session
 
     with Session.open(path, validate=False) as s:
-        if "calibration" not in s.groups:
-            raise InputError(f"{path} has no /calibration: run evcap calibrate on it first")
-        g = s.group("calibration")
-        missing = [k for k in ("threshold_on", "threshold_off") if k not in g]
-        if missing:
-            raise InputError(f"{path}: /calibration has no {', '.join(missing)}")
-        on, off = g["threshold_on"][()].ravel(), g["threshold_off"][()].ravel()
-        hot_map = g["hot_pixels"][()].ravel().astype(bool) if "hot_pixels" in g else None
-        rate = g["event_rate_hz"][()].ravel() if "event_rate_hz" in g else None
-        a = dict(g.attrs)
+        cal = Calibration.read(s)
+    on, off = cal.thresholds(str(path))
     if on.size != n_pixels:
         raise InputError(f"{path}: its calibration has {on.size} pixels, the camera {n_pixels}")
-    if not (np.isfinite(on).all() and np.isfinite(off).all() and on.min() > 0 and off.min() > 0):
-        raise InputError(f"{path}: /calibration's thresholds must be positive numbers")
-    hot = np.flatnonzero(hot_map) if hot_map is not None else np.zeros(0, np.int64)
+    hot = np.flatnonzero(cal.hot())
     measured = {
-        "background_activity": {"rate_hz": float(a.get("background_activity_hz", 0.0))},
-        "shot_noise": {"rate_hz": float(a.get("shot_noise_hz", 0.0))},
-        "refractory": {"period_us": int(a.get("refractory_period_us", 0))},
+        "background_activity": {"rate_hz": cal.background_activity_hz},
+        "shot_noise": {"rate_hz": cal.shot_noise_hz},
+        "refractory": {"period_us": int(cal.refractory_period_us)},
     }
     if len(hot):
-        hot_rate = float(np.median(rate[hot])) if rate is not None else 200.0
+        rate = cal.event_rate_hz
+        hot_rate = float(np.median(rate.ravel()[hot])) if rate is not None else 200.0
         measured["hot_pixels"] = {"count": len(hot), "rate_hz": hot_rate}
     out = {k: v for k, v in measured.items() if next(iter(v.values())) > 0}
     out.update(effects)
-    return on.astype(np.float64), off.astype(np.float64), hot, out
+    return on.ravel().astype(np.float64), off.ravel().astype(np.float64), hot, out
+
+
+def true_calibration(
+    pixels: PixelArray,
+    width: int,
+    height: int,
+    K: np.ndarray,
+    distortion_model: str = "none",
+    distortion: tuple[float, ...] | np.ndarray = (),
+) -> Calibration:
+    """The /calibration of a simulated sensor: its true intrinsics, thresholds, hot pixels
+    and noise rates (what `evcap calibrate` measures of a real one)."""
+    hot = np.zeros(width * height, bool)
+    hot[pixels.hot] = True
+    effects = pixels.effects
+    return Calibration(
+        width,
+        height,
+        "ground truth",
+        K=K,
+        distortion_model=distortion_model,  # type: ignore[arg-type]
+        dist=np.asarray(distortion, np.float64),
+        threshold_on=pixels.con.reshape(height, width),
+        threshold_off=pixels.coff.reshape(height, width),
+        hot_pixels=hot.reshape(height, width),
+        refractory_period_us=float(effects.get("refractory", {}).get("period_us", 0)),
+        background_activity_hz=float(effects.get("background_activity", {}).get("rate_hz", 0)),
+        shot_noise_hz=float(effects.get("shot_noise", {}).get("rate_hz", 0)),
+        rms_reprojection_px=0.0,
+    )

@@ -22,11 +22,18 @@ import numpy as np
 
 from evcap.errors import InputError
 from evcap.events import Events
-from evcap.session import SensorInfo, SessionWriter, write_group
+from evcap.records import Calibration, GroundTruth, Poses, TruthViews
+from evcap.session import SensorInfo, SessionWriter
 from evcap.sim.events import PixelArray
 from evcap.sim.render import RENDERER_VERSION, Renderer
 from evcap.sim.scene import Scene
-from evcap.sim.sensor import ChannelMap, aps_frame, imu_samples, measured_sensor
+from evcap.sim.sensor import (
+    ChannelMap,
+    aps_frame,
+    imu_samples,
+    measured_sensor,
+    true_calibration,
+)
 from evcap.sim.trajectory import Trajectory, look_at
 from evcap.streams import Frames, ImuSamples, TriggerKind, Triggers
 
@@ -313,65 +320,52 @@ class Simulator:
 
     # -- ground truth ----------------------------------------------------------------------------
 
-    def ground_truth(self) -> tuple[dict, dict]:
-        """(/gt datasets, attributes): renders at gt.fps along the path and at held-out views."""
+    def ground_truth(self) -> GroundTruth:
+        """Renders at gt.fps along the path and at held-out views (under the scene's light and
+        the second one), with what the events were made with."""
         with _timed(self.stats, "gt"):
             g = self.scene.gt
             times = np.arange(0.0, self.scene.trajectory.duration_s + 1e-9, 1.0 / g.fps)
-            poses = self.trajectory.poses(times)
-            frames = [self.renderer.render_full(T) for T in poses]
-            data = {
-                "t": np.round(times * 1e6).astype(np.int64),
-                "T_world_cam": poses,
-                "K": self.camera.K,
-                **{k: np.stack([f[k] for f in frames]) for k in frames[0]},
-                "threshold_on": self.pixels.con.reshape(
-                    self.camera.height, self.camera.width
-                ).astype(np.float32),
-                "threshold_off": self.pixels.coff.reshape(
-                    self.camera.height, self.camera.width
-                ).astype(np.float32),
-            }
+            path = _rendered(self.renderer, self.trajectory.poses(times))
+            held_out, relight = None, None
             test = self._test_poses(g.test_views)
             if len(test):
-                views = [self.renderer.render_full(T) for T in test]
-                data["test_T_world_cam"] = test
-                for k in views[0]:
-                    data[f"test_{k}"] = np.stack([view[k] for view in views])
+                held_out = _rendered(self.renderer, test)
                 relit = Renderer(dataclasses.replace(self.scene, lighting=g.relight))
-                data["test_relit_radiance"] = np.stack(
-                    [relit.render_full(T)["radiance"] for T in test]
-                )
-                data["relight_environment"] = relit.env.table(256).astype(np.float32)
+                held_out.relit_radiance = _rendered(relit, test).radiance
+                relight = relit.env.table(256).astype(np.float32)
+        spec, shape = self.scene.camera, (self.camera.height, self.camera.width)
+        return GroundTruth(
+            source="evcap simulate",
+            t=np.round(times * 1e6).astype(np.int64),
+            path=path,
+            held_out=held_out,
+            K=self.camera.K,
+            distortion_model=spec.distortion_model,
+            distortion=np.asarray(spec.distortion, np.float64),
+            threshold_on=self.pixels.con.reshape(shape).astype(np.float32),
+            threshold_off=self.pixels.coff.reshape(shape).astype(np.float32),
+            relight_environment=relight,
+            renderer_version=RENDERER_VERSION,
+            hot_pixels=self.pixels.hot.astype(np.int64),
+            notes={
+                "scene": self.scene.name,
+                "seed": self.seed,
+                "charuco": json.dumps([_board_json(b) for b in self.renderer.boards if b]),
+            },
+        )
+
+    def calibration(self) -> Calibration:
+        """The sensor's true calibration."""
         spec = self.scene.camera
-        attrs = {
-            "source": "evcap simulate",
-            "renderer_version": RENDERER_VERSION,
-            "scene": self.scene.name,
-            "seed": self.seed,
-            "distortion_model": spec.distortion_model,
-            "distortion": np.asarray(spec.distortion, np.float64),
-            "depth": "z in the camera frame (OpenCV axes); 0 where no surface",
-            "normal": "unit, in the camera frame (OpenCV axes: x right, y down, z forward)",
-            "radiance": "linear RGB, before the color filter",
-            "relit_radiance": "the held-out views under relight_environment instead",
-            "relight_environment": (
-                "linear RGB radiance on a latitude-longitude grid of world directions (z up,"
-                " azimuth from +x, top row the zenith): the second light"
-            ),
-            "visibility": (
-                "direct irradiance received / direct irradiance if nothing blocked (environment"
-                " without the bounce, sun, point lights): the shadow factor, 1 unshadowed;"
-                " 0 where no surface"
-            ),
-            "indirect": (
-                "linear RGB radiance added by one bounce of diffuse light (color bleeding):"
-                " base_color / pi * bounced irradiance; 0 without lighting.indirect or surface"
-            ),
-            "hot_pixels": self.pixels.hot.astype(np.int64),
-            "charuco": json.dumps([_board_json(b) for b in self.renderer.boards if b]),
-        }
-        return data, attrs
+        return true_calibration(
+            self.pixels,
+            self.camera.width,
+            self.camera.height,
+            self.camera.K,
+            spec.distortion_model,
+            spec.distortion,
+        )
 
     def _test_poses(self, count: int) -> np.ndarray:
         """Held-out views: off the path (moved by a tenth of the distance to the target,
@@ -390,6 +384,12 @@ class Simulator:
             T[:3, :3] = look_at(T[:3, 3], target)
             out.append(T)
         return np.array(out)
+
+
+def _rendered(renderer: Renderer, poses: np.ndarray) -> TruthViews:
+    """Every map the renderer makes, at each pose."""
+    renders = [renderer.render_full(T) for T in poses]
+    return TruthViews(poses, **{k: np.stack([r[k] for r in renders]) for k in renders[0]})
 
 
 def _board_json(board: dict) -> dict:
@@ -433,48 +433,11 @@ def simulate(
     try:
         with SessionWriter(partial, sensor, attrs=attrs, overwrite=True) as writer:
             stats = sim.run(writer)
-        data, gt_attrs = sim.ground_truth()
-        write_group(partial, "gt", data, gt_attrs)
+        sim.ground_truth().write(partial)
         times = np.arange(0.0, scene.trajectory.duration_s + 1e-9, 1.0 / POSE_RATE_HZ)
-        write_group(
-            partial,
-            "poses",
-            {
-                "t": np.round(times * 1e6).astype(np.int64),
-                "T_world_cam": sim.trajectory.poses(times),
-            },
-            {
-                "source": "ground truth",
-                "frame": "camera-to-world, OpenCV camera axes",
-                "interpolation": "linear position, slerp rotation",
-            },
-        )
-        effects = sim.effects
-        hot = np.zeros(cam.width * cam.height, np.uint8)
-        hot[sim.pixels.hot] = 1
-        write_group(
-            partial,
-            "calibration",
-            {
-                "K": cam.K,
-                "dist": np.asarray(scene.camera.distortion, np.float64),
-                "threshold_on": data["threshold_on"],
-                "threshold_off": data["threshold_off"],
-                "hot_pixels": hot.reshape(cam.height, cam.width),
-            },
-            {
-                "source": "ground truth",
-                "distortion_model": scene.camera.distortion_model,
-                "width": cam.width,
-                "height": cam.height,
-                "refractory_period_us": float(effects.get("refractory", {}).get("period_us", 0)),
-                "background_activity_hz": float(
-                    effects.get("background_activity", {}).get("rate_hz", 0)
-                ),
-                "shot_noise_hz": float(effects.get("shot_noise", {}).get("rate_hz", 0)),
-                "rms_reprojection_px": 0.0,
-            },
-        )
+        t = np.round(times * 1e6).astype(np.int64)
+        Poses(t, sim.trajectory.poses(times), source="ground truth").write(partial)
+        sim.calibration().write(partial)
     except BaseException:
         partial.unlink(missing_ok=True)
         raise

@@ -46,6 +46,10 @@ DATASETS = {
 }
 
 
+# the scene TOML's own keys (a camera's or a sensor's calibration file, a sensor's thresholds)
+SCENE_KEYS = {"sim/scene.py": {"calibration", "threshold_on", "threshold_off"}}
+
+
 def modules(*steps: str) -> list[Path]:
     out = []
     for step in steps:
@@ -84,6 +88,8 @@ def test_only_the_records_name_their_groups_and_datasets(path):
         for node in ast.walk(tree)
         if isinstance(node, ast.Constant) and node.value in DATASETS
     ]
+    allowed = SCENE_KEYS.get(str(path.relative_to(ROOT)), set())
+    named = [(line, text) for line, text in named if text not in allowed]
     assert not named, f"{path.relative_to(ROOT)} names a record's group or dataset: {named}"
 
 

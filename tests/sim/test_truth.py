@@ -7,11 +7,15 @@ import pytest
 
 from evcap.errors import InputError, SessionFormatError
 from evcap.events import Events
-from evcap.recon.evaluate import test_views as held_out_views
+from evcap.records import GroundTruth
 from evcap.session import SensorInfo, Session, SessionWriter
 from evcap.sim.scene import load_scene
 from evcap.sim.simulate import simulate
-from evcap.sim.truth import GT_IMAGES, GT_OPTIONAL, copy_truth, write_truth
+from evcap.sim.truth import copy_truth, write_truth
+
+# the truth file's images (float16): the held-out views' and the second light
+GT_IMAGES = ("test_radiance", "test_depth", "test_normal", "test_base_color", "test_roughness")
+GT_OPTIONAL = ("relight_environment", "test_relit_radiance")
 
 
 @pytest.fixture(scope="module")
@@ -22,6 +26,15 @@ def simulated(tiny_scene, tmp_path_factory):
     simulate(load_scene(tiny_scene()), session)
     write_truth(session, folder / "truth.h5")
     return session, folder / "truth.h5"
+
+
+def held_out_views(s):
+    """The held-out poses [N, 4, 4] and whatever truth a session has for them (none without
+    ground truth), as the evaluation reads them."""
+    if not GroundTruth.present(s):
+        return np.zeros((0, 4, 4)), {}
+    views = GroundTruth.read(s).held_out_views()
+    return views.T_world_cam, views.maps()
 
 
 def recorded(path, width=48, height=36):
@@ -78,12 +91,13 @@ def test_copy_truth_gives_a_recorded_session_its_held_out_views(simulated, tmp_p
         g = s.group("gt")
         np.testing.assert_array_equal(g["t"][:], want_t)
         np.testing.assert_array_equal(g["T_world_cam"][:], want_T)
+        stored = {key: g[f"test_{key}"].dtype for key in got}
         assert "poses" not in s.groups  # the estimated poses' place is left alone
     np.testing.assert_array_equal(poses, want_poses)
     assert len(poses) == 2
     assert {"radiance", "depth", "normal", "base_color", "roughness"} <= set(got)
     for key, value in got.items():
-        assert value.dtype == np.float32
+        assert value.dtype == stored[key] == np.float32
         np.testing.assert_allclose(value, want[key], rtol=1e-3, atol=1e-4)
 
 
