@@ -25,7 +25,9 @@ def session(tmp_path):
     t = np.cumsum(rng.integers(0, 50, n))
     with SessionWriter(path, SENSOR) as w:
         w.append_events(
-            Events(rng.integers(0, W, n), rng.integers(0, H, n), t, rng.integers(0, 2, n), W, H, "RGBG")
+            Events(
+                rng.integers(0, W, n), rng.integers(0, H, n), t, rng.integers(0, 2, n), W, H, "RGBG"
+            )
         )
     return path
 
