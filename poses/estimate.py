@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from evcap.errors import InputError
-from evcap.poses.frames import event_frames, frame_rate
+from evcap.poses.frames import FrameKind, event_frames, frame_rate
 from evcap.poses.gravity import Gravity, gravity_up, level, level_rotation
 from evcap.poses.gyro import GyroFit, fit_gyro
 from evcap.poses.refine import Refined, refine_positions
@@ -43,7 +43,7 @@ class PosesResult:
     T_world_cam: np.ndarray  # [M, 4, 4] camera-to-world, OpenCV axes, arbitrary scale
     frames: int  # frames made from the events
     rate_hz: float
-    kind: str  # how the frames were made
+    kind: FrameKind  # how the frames were made
     mean_reprojection_px: float
     points: int  # 3D points of the model
     seconds: float  # structure from motion's time
@@ -105,7 +105,7 @@ class PosesResult:
 def estimate_poses(
     path: str | Path,
     *,
-    kind: str = "filter",
+    kind: FrameKind = "filter",
     weights: str | Path | None = None,
     rate_hz: float | None = None,
     export_frames: str | Path | None = None,

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import Literal, assert_never, get_args
 
 import cv2
 import numpy as np
@@ -15,7 +16,8 @@ from evcap.errors import InputError
 from evcap.events import Events, pixel_channels
 from evcap.streams import Frames
 
-KINDS = ("filter", "e2vid", "firenet")
+FrameKind = Literal["filter", "e2vid", "firenet"]  # the high-pass filter, or a network
+KINDS: tuple[FrameKind, ...] = get_args(FrameKind)
 EVENTS_PER_PIXEL = 0.35  # events per frame per pixel that set the rate (E2VID's window)
 MIN_RATE_HZ, MAX_RATE_HZ = 5.0, 60.0
 MIN_FRAMES = 60  # structure from motion wants views a few pixels of motion apart
@@ -60,7 +62,7 @@ def event_frames(
     events: Events,
     times_us: np.ndarray,
     *,
-    kind: str = "filter",
+    kind: FrameKind = "filter",
     weights: str | Path | None = None,
     threshold_on: np.ndarray | float = 0.2,
     threshold_off: np.ndarray | float = 0.2,
@@ -72,22 +74,25 @@ def event_frames(
     recording's ``aps`` frames when it has them: the complementary filter)."""
     if kind not in KINDS:
         raise InputError(f"unknown frame kind {kind!r}; known: {', '.join(KINDS)}")
-    if kind == "filter":
-        if weights is not None:
-            raise InputError("--weights is for --frames e2vid or firenet, not filter")
-        from evcap.event_frames import high_pass_frames
+    match kind:
+        case "filter":
+            if weights is not None:
+                raise InputError("--weights is for --frames e2vid or firenet, not filter")
+            from evcap.event_frames import high_pass_frames
 
-        mosaics = high_pass_frames(
-            events,
-            times_us,
-            cutoff_hz=FILTER_CUTOFF_HZ,
-            threshold_on=threshold_on,
-            threshold_off=threshold_off,
-            exclude=hot_pixels,
-            aps=aps,
-        )
-    else:
-        mosaics = _network_frames(events, times_us, kind, weights, hot_pixels, progress)
+            mosaics = high_pass_frames(
+                events,
+                times_us,
+                cutoff_hz=FILTER_CUTOFF_HZ,
+                threshold_on=threshold_on,
+                threshold_off=threshold_off,
+                exclude=hot_pixels,
+                aps=aps,
+            )
+        case "e2vid" | "firenet":
+            mosaics = _network_frames(events, times_us, kind, weights, hot_pixels, progress)
+        case _:
+            assert_never(kind)
     out = np.empty(mosaics.shape, np.uint8)
     for k, m in enumerate(mosaics):
         out[k] = to_gray8(demosaic(m, events.color_filter))
