@@ -27,19 +27,22 @@ from evcap.recon.config import (
 
 def _cmd_import(args: argparse.Namespace) -> int:
     from evcap._progress import progress_bar
-    from evcap.aedat4 import import_aedat4
+    from evcap.importers.detect import import_recording
 
     with progress_bar(f"importing {args.file}") as update:
-        summary = import_aedat4(
+        summary = import_recording(
             args.file,
             args.output,
+            topic=args.topic,
             color_filter=args.color_filter,
+            width=args.width,
+            height=args.height,
             overwrite=args.force,
             progress=update,
         )
     print(
         f"{args.output}: {summary.events:,} events, {summary.frames:,} frames, "
-        f"{summary.imu:,} IMU samples, {summary.triggers:,} triggers"
+        f"{summary.imu:,} IMU samples, {summary.triggers:,} triggers ({summary.source})"
     )
     return 0
 
@@ -438,17 +441,28 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "import",
-        help="convert an AEDAT 4 file (iniVation DV) into a session",
-        description="Convert an AEDAT 4 file (events, frames, IMU, triggers) into a session.",
+        help="convert a recording (AEDAT 2/3/4, ROS 1/2 bag, event text) into a session",
+        description="Convert a recording into a session; the container is told by the content: "
+        "AEDAT 4 (DV), AEDAT 3.1 (cAER, libcaer), AEDAT 2.0 (jAER: DVS128, DAVIS240, DAVIS346), "
+        "ROS 1 and ROS 2 bags (dvs_msgs/EventArray, event_camera_msgs/EventPacket, with the "
+        "camera's images and IMU), event text files (t x y p; the Event-Camera Dataset's "
+        "folder, with calib.txt, groundtruth.txt, images.txt, imu.txt).",
     )
-    p.add_argument("file", help="the .aedat4 file")
+    p.add_argument(
+        "file", help="the recording: a file, or a ROS 2 bag's or a text sequence's folder"
+    )
     p.add_argument("-o", "--output", required=True, help="the session file to write (.h5)")
     p.add_argument(
         "--color-filter",
         choices=["MONO", "RGBG", "GRGB", "GBGR", "BGRG"],
         default=None,
-        help="the sensor's color filter (default: RGBG if the file has color frames, else MONO)",
+        help="the sensor's color filter where the recording does not state it (default MONO)",
     )
+    p.add_argument("--topic", help="a bag's event topic (default: the first with events)")
+    p.add_argument(
+        "--width", type=int, help="an event text file's sensor width (default: inferred)"
+    )
+    p.add_argument("--height", type=int, help="an event text file's sensor height")
     p.add_argument("-f", "--force", action="store_true", help="overwrite the output file")
     p.set_defaults(run=_cmd_import)
 

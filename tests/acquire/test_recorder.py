@@ -421,7 +421,7 @@ def test_record_does_not_import_torch(tmp_path):
 
 def test_real_sample_replay_matches_the_aedat_import(tmp_path, sample_aedat4):
     """The re-encoded real recording, recorded, equals the AEDAT 4 import of the original."""
-    from evcap.aedat4 import import_aedat4
+    from evcap.importers.aedat4 import import_aedat4
 
     import_aedat4(sample_aedat4, tmp_path / "a.h5")
     with Davis346.open(f"replay:{FIXTURES / 'davis346-sample'}") as cam:

@@ -6,7 +6,7 @@ import h5py
 import numpy as np
 import pytest
 
-from evcap.aedat4 import import_aedat4, read_layout
+from evcap.importers.aedat4 import import_aedat4, read_layout
 from evcap.errors import ForeignFormatError, OutputExistsError
 from evcap.session import Session
 
@@ -155,7 +155,7 @@ def test_cli_import_and_info(imported, tmp_path):
         (
             lambda d: (d / "x.aedat4").write_text("nope"),
             ("import", "{d}/x.aedat4", "-o", "{d}/o.h5"),
-            "not an AEDAT 4",
+            "not a recording evcap knows",
         ),
         (
             lambda d: (d / "x.h5").write_bytes(b"\x89HDF\r\n\x1a\n" + bytes(40)),

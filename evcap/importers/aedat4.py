@@ -19,6 +19,7 @@ import numpy as np
 
 from evcap.errors import ForeignFormatError, InputError, InputNotFoundError, OutputExistsError
 from evcap.events import Events, check_color_filter
+from evcap.importers.common import ImportSummary
 from evcap.session import SensorInfo, SessionWriter
 from evcap.streams import Frames, ImuSamples, Triggers
 
@@ -187,14 +188,6 @@ def _mosaic(pixels: np.ndarray, fmt: str, color_filter: str) -> np.ndarray:
     raise ForeignFormatError(f"frames in format {fmt!r} are not supported (L, RGB, RGBA are)")
 
 
-@dataclass
-class ImportSummary:
-    events: int = 0
-    frames: int = 0
-    imu: int = 0
-    triggers: int = 0
-
-
 def _first_timestamp(decoder_factory: Callable, stream_types: dict[int, str]) -> int:
     """The earliest timestamp of the file: the first element of each stream's first packet."""
     firsts: dict[int, int] = {}
@@ -263,7 +256,7 @@ def import_aedat4(
     sensor = _sensor_from_info(layout.info_xml, width, height, color_filter, t_offset)
 
     tmp = dst.with_name(dst.name + ".partial")
-    summary = ImportSummary()
+    summary = ImportSummary(source=f"AEDAT 4, {sensor.sensor}")
     total = sum(size + 8 for _, _, size in layout.packets)
     done = 0
     attrs = {
