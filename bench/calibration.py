@@ -86,8 +86,8 @@ def against_truth(path: Path, frames: bool) -> dict:
 
 def real_recording(aedat4: Path) -> dict:
     """Hot pixels and noise of the real DAVIS346 recording (no board in it)."""
-    from evcap.importers.aedat4 import import_aedat4
     from evcap.calib.calibrate import calibrate
+    from evcap.importers.aedat4 import import_aedat4
 
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "real.h5"

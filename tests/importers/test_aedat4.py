@@ -6,8 +6,8 @@ import h5py
 import numpy as np
 import pytest
 
-from evcap.importers.aedat4 import import_aedat4, read_layout
 from evcap.errors import ForeignFormatError, OutputExistsError
+from evcap.importers.aedat4 import import_aedat4, read_layout
 from evcap.session import Session
 
 
