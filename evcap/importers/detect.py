@@ -88,7 +88,7 @@ def import_recording(
     takes = {"--topic": container in ("ros1", "ros2"), "--width/--height": container == "text"}
     for option, used in given.items():
         if used and not takes[option]:
-            raise InputError(f"{option} is not for {src} (a {container} recording)")
+            raise InputError(f"{option} is not for {src} (its container: {container})")
     common = {"color_filter": color_filter, "overwrite": overwrite, "progress": progress}
     match container:
         case "aedat4":

@@ -57,7 +57,7 @@ def test_unknown_containers_are_named(tmp_path, content, message):
 def test_an_option_for_another_container_is_refused(tmp_path):
     path = tmp_path / "x.aedat"
     path.write_bytes(b"#!AER-DAT2.0\r\n")
-    with pytest.raises(InputError, match="--topic is not for .* aedat2"):
+    with pytest.raises(InputError, match="--topic is not for .* container: aedat2"):
         import_recording(path, tmp_path / "s.h5", topic="/dvs/events")
 
 
