@@ -612,9 +612,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--frames",
         default="filter",
-        choices=["filter", "e2vid", "firenet"],
-        help="filter: a per-pixel high-pass filter, no weights (default); e2vid, firenet: the "
-        "recurrent networks, from --weights",
+        choices=["filter", "timesurface", "e2vid", "firenet"],
+        help="filter: a per-pixel high-pass filter, no weights (default); timesurface: a "
+        "decayed time surface of either polarity, which keeps its look when the motion reverses "
+        "(more frames register, less accurate: docs/poses.md); e2vid, firenet: the recurrent "
+        "networks, from --weights",
     )
     p.add_argument(
         "--weights",

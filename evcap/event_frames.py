@@ -86,3 +86,39 @@ def high_pass_frames(
         ref, ref_t = np.zeros((0, w * h)), np.zeros(0, np.int64)
     alpha = 2 * np.pi * cutoff_hz * 1e-6  # per microsecond
     return _filter(ev.x, ev.y, ev.t, ev.p, c_on, c_off, ref_t, ref, times, alpha, w, h)
+
+
+@numba.njit(cache=True, nogil=True)
+def _time_surface(x, y, t, times, tau_us, width, height):  # pragma: no cover
+    last = np.full(width * height, np.iinfo(np.int64).min)
+    out = np.zeros((len(times), height, width), np.float32)
+    i = 0
+    for k in range(len(times)):
+        while i < len(t) and t[i] <= times[k]:
+            last[int(y[i]) * width + int(x[i])] = t[i]
+            i += 1
+        for j in range(width * height):
+            if last[j] != np.iinfo(np.int64).min:
+                out[k, j // width, j % width] = np.exp(-(times[k] - last[j]) / tau_us)
+    return out
+
+
+def time_surface_frames(
+    events: Events,
+    times_us: np.ndarray,
+    *,
+    tau_us: float,
+    exclude: np.ndarray | None = None,
+) -> np.ndarray:
+    """[K, H, W] float32 exponentially decayed time surface at ``times_us``: each pixel
+    exp(-(t - t_last) / tau) of its latest event at or before t, whatever its polarity (0 for a
+    pixel with no event yet). An edge shows as a bright ridge fading behind it, the same
+    whichever way it moves and whether it turns brighter or darker, where a filter's frame
+    changes sign. ``exclude`` ([H, W] bool): pixels whose events are left out (hot pixels)."""
+    times = np.asarray(times_us, np.int64)
+    if times.ndim != 1 or (np.diff(times) < 0).any():
+        raise InputError("frame times must be a 1-D increasing sequence of microseconds")
+    if not tau_us > 0:
+        raise InputError(f"tau_us must be positive, got {tau_us}")
+    ev = events if exclude is None else events.select(~exclude[events.y, events.x])
+    return _time_surface(ev.x, ev.y, ev.t, times, float(tau_us), events.width, events.height)

@@ -1,6 +1,7 @@
 """Intensity frames from a session's events, for structure from motion: the classical high-pass
-filter (no weights, the default) or a recurrent network (E2VID, FireNet) from a checkpoint the
-user gives. Frames are made on the raw mosaic (each pixel in its own color channel), then
+filter (no weights, the default), a time surface (no weights; it does not change sign with the
+direction of motion), or a recurrent network (E2VID, FireNet) from a checkpoint the user
+gives. Frames are made on the raw mosaic (each pixel in its own color channel), then
 demosaiced and tone-mapped to 8-bit gray for feature matching."""
 
 from __future__ import annotations
@@ -16,12 +17,17 @@ from evcap.errors import InputError
 from evcap.events import Events, pixel_channels
 from evcap.streams import Frames
 
-FrameKind = Literal["filter", "e2vid", "firenet"]  # the high-pass filter, or a network
+FrameKind = Literal["filter", "timesurface", "e2vid", "firenet"]  # no weights, or a network
 KINDS: tuple[FrameKind, ...] = get_args(FrameKind)
 EVENTS_PER_PIXEL = 0.35  # events per frame per pixel that set the rate (E2VID's window)
 MIN_RATE_HZ, MAX_RATE_HZ = 5.0, 60.0
 MIN_FRAMES = 60  # structure from motion wants views a few pixels of motion apart
 FILTER_CUTOFF_HZ = 3.0  # the filter's corner: about 50 ms of memory
+# the time surface's decay and its smoothing (a color filter's pixels see an edge only where
+# their channel does: the blur joins its dotted ridge); measured on the demo's orbit (60 Hz
+# frames): tau 17 or 33 ms, or a 1 px blur, give too few features to register half the frames
+TIME_SURFACE_TAU_US = 50_000
+TIME_SURFACE_BLUR_PX = 1.5
 
 
 def frame_rate(events: Events) -> float:
@@ -89,6 +95,19 @@ def event_frames(
                 exclude=hot_pixels,
                 aps=aps,
             )
+        case "timesurface":
+            if weights is not None:
+                raise InputError("--weights is for --frames e2vid or firenet, not timesurface")
+            from evcap.event_frames import time_surface_frames
+
+            surfaces = time_surface_frames(
+                events, times_us, tau_us=TIME_SURFACE_TAU_US, exclude=hot_pixels
+            )
+            out = np.empty(surfaces.shape, np.uint8)
+            for k, m in enumerate(surfaces):  # per pixel, whatever its color: no demosaicing
+                smooth = cv2.GaussianBlur(m, (0, 0), TIME_SURFACE_BLUR_PX)
+                out[k] = to_gray8(demosaic(smooth, "MONO"))
+            return out
         case "e2vid" | "firenet":
             mosaics = _network_frames(events, times_us, kind, weights, hot_pixels, progress)
         case _:
