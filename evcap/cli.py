@@ -441,7 +441,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "import",
-        help="convert a recording (AEDAT 2/3/4, ROS 1/2 bag, event text) into a session",
+        help="convert a recording (AEDAT, ROS bag, text) into a session",
         description="Convert a recording into a session; the container is told by the content: "
         "AEDAT 4 (DV), AEDAT 3.1 (cAER, libcaer), AEDAT 2.0 (jAER: DVS128, DAVIS240, DAVIS346), "
         "ROS 1 and ROS 2 bags (dvs_msgs/EventArray, event_camera_msgs/EventPacket, with the "
