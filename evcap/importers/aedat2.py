@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from evcap.errors import ForeignFormatError, InputError, InputNotFoundError, OutputExistsError
+from evcap.errors import ForeignFormatError, InputError, InputNotFoundError
 from evcap.events import Events, check_color_filter
-from evcap.importers.common import SENSOR_SIZES, ImportSummary
+from evcap.importers.common import SENSOR_SIZES, ImportSummary, check_output, partial_output
 from evcap.session import SensorInfo, SessionWriter
 from evcap.streams import APS_MAX, Frames, ImuSamples, TriggerKind, Triggers
 
@@ -273,8 +273,7 @@ def import_aedat2(
     counts bytes.
     """
     src, dst = Path(src), Path(dst)
-    if dst.exists() and not overwrite:
-        raise OutputExistsError(f"{dst} exists; choose another name or pass --force")
+    check_output(dst, overwrite)
     if color_filter is not None:
         check_color_filter(color_filter)
     header = read_header(src)
@@ -293,24 +292,22 @@ def import_aedat2(
         "source_chip_class": header.chip_class,
     }
     summary = ImportSummary(source=f"AEDAT 2.0, {chip.name}")
-    tmp = dst.with_name(dst.name + ".partial")
-    try:
-        with SessionWriter(tmp, sensor, attrs=attrs, overwrite=True) as writer:
-            decoder = _Decoder(src, chip, sensor, writer, summary)
-            records = _records(src, header.data_start, n_records)
-            pos = 0
-            while pos < n_records:
-                block = records[pos : pos + _BLOCK]
-                if pos + block.size < n_records:
-                    block = block[: _whole_imu_samples(block, chip)]
-                decoder.decode(block, header.data_start + pos * _RECORD.itemsize)
-                pos += block.size
-                if progress:
-                    progress(header.data_start + pos * _RECORD.itemsize, size)
-            decoder.finish()
-        os.replace(tmp, dst)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with (
+        partial_output(dst) as tmp,
+        SessionWriter(tmp, sensor, attrs=attrs, overwrite=True) as writer,
+    ):
+        decoder = _Decoder(src, chip, sensor, writer, summary)
+        records = _records(src, header.data_start, n_records)
+        pos = 0
+        while pos < n_records:
+            block = records[pos : pos + _BLOCK]
+            if pos + block.size < n_records:
+                block = block[: _whole_imu_samples(block, chip)]
+            decoder.decode(block, header.data_start + pos * _RECORD.itemsize)
+            pos += block.size
+            if progress:
+                progress(header.data_start + pos * _RECORD.itemsize, size)
+        decoder.finish()
     if whole_end < size:
         e = ForeignFormatError(
             f"{src} is truncated: it ends inside the record at byte {whole_end}; the "

@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from evcap.errors import ForeignFormatError, InputError, InputNotFoundError, OutputExistsError
+from evcap.errors import ForeignFormatError, InputError, InputNotFoundError
 from evcap.events import Events, check_color_filter, pixel_channels
-from evcap.importers.common import SENSOR_SIZES, ImportSummary
+from evcap.importers.common import SENSOR_SIZES, ImportSummary, check_output, partial_output
 from evcap.session import SensorInfo, SessionWriter
 from evcap.streams import Frames, ImuSamples, TriggerKind, Triggers
 
@@ -258,8 +258,7 @@ def import_aedat3(
     total)`` counts bytes.
     """
     src, dst = Path(src), Path(dst)
-    if dst.exists() and not overwrite:
-        raise OutputExistsError(f"{dst} exists; choose another name or pass --force")
+    check_output(dst, overwrite)
     if color_filter is not None:
         check_color_filter(color_filter)
     layout = read_layout(src)
@@ -267,7 +266,6 @@ def import_aedat3(
     source, name = _first_source(layout)
     packets = [p for p in layout.packets if p.source == source]
     summary = ImportSummary(source=f"AEDAT 3.1, {name}")
-    tmp = dst.with_name(dst.name + ".partial")
     buf = np.memmap(src, np.uint8, mode="r")
     spans = [_span(buf, p) for p in packets]
     bases, seams = _time_bases(spans, [p.type for p in packets])
@@ -282,23 +280,22 @@ def import_aedat3(
     cf = filter_stated or color_filter or "MONO"
     sensor = SensorInfo(name, width, height, cf, "", layout.start_time_us or 0)
     attrs = {"source_file": src.name, "source_format": "AEDAT 3.1"}
-    try:
-        with SessionWriter(tmp, sensor, attrs=attrs, overwrite=True) as writer:
-            decoder = _Decoder(src, buf, sensor, writer, summary, t0)
-            try:
-                decoder.triggers(packets, bases, seams)
-                for i, (p, base) in enumerate(zip(packets, bases, strict=True)):
-                    decoder.add(p, int(base))
-                    if progress and i % 256 == 0:
-                        progress(p.body + p.number * p.size, size)
-                decoder.flush()
-            except InputError as e:
-                if isinstance(e, ForeignFormatError):
-                    raise
-                raise ForeignFormatError(f"{src}: {e}") from None
-        os.replace(tmp, dst)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with (
+        partial_output(dst) as tmp,
+        SessionWriter(tmp, sensor, attrs=attrs, overwrite=True) as writer,
+    ):
+        decoder = _Decoder(src, buf, sensor, writer, summary, t0)
+        try:
+            decoder.triggers(packets, bases, seams)
+            for i, (p, base) in enumerate(zip(packets, bases, strict=True)):
+                decoder.add(p, int(base))
+                if progress and i % 256 == 0:
+                    progress(p.body + p.number * p.size, size)
+            decoder.flush()
+        except InputError as e:
+            if isinstance(e, ForeignFormatError):
+                raise
+            raise ForeignFormatError(f"{src}: {e}") from None
     if progress:
         progress(size, size)
     if layout.broken:

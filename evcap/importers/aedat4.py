@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from evcap.errors import ForeignFormatError, InputError, InputNotFoundError, OutputExistsError
+from evcap.errors import ForeignFormatError, InputError, InputNotFoundError
 from evcap.events import Events, check_color_filter
-from evcap.importers.common import ImportSummary
+from evcap.importers.common import ImportSummary, check_output, partial_output
 from evcap.session import SensorInfo, SessionWriter
 from evcap.streams import Frames, ImuSamples, Triggers
 
@@ -228,8 +228,7 @@ def import_aedat4(
     import aedat
 
     src, dst = Path(src), Path(dst)
-    if dst.exists() and not overwrite:
-        raise OutputExistsError(f"{dst} exists; choose another name or pass --force")
+    check_output(dst, overwrite)
     if color_filter is not None:
         check_color_filter(color_filter)
     layout = read_layout(src)
@@ -255,7 +254,6 @@ def import_aedat4(
     t_offset = _first_timestamp(decoder, types)
     sensor = _sensor_from_info(layout.info_xml, width, height, color_filter, t_offset)
 
-    tmp = dst.with_name(dst.name + ".partial")
     summary = ImportSummary(source=f"AEDAT 4, {sensor.sensor}")
     total = sum(size + 8 for _, _, size in layout.packets)
     done = 0
@@ -264,56 +262,55 @@ def import_aedat4(
         "source_format": "AEDAT 4.0",
         "source_compression": layout.compression,
     }
-    try:
-        # DV writes 8-bit frames: 8 significant bits of the sensor's 10.
-        with SessionWriter(tmp, sensor, attrs=attrs, overwrite=True, frame_bits=8) as writer:
-            batch: list[np.ndarray] = []
-            batch_n = 0
-            try:
-                for index, packet in enumerate(decoder()):
-                    if "events" in packet:
-                        batch.append(packet["events"])
-                        batch_n += packet["events"].size
-                        if batch_n >= _EVENT_BATCH:
-                            summary.events += _append_events(writer, batch, sensor)
-                            batch, batch_n = [], 0
-                    elif "frame" in packet:
-                        writer.append_frames(_frame(packet["frame"], sensor))
-                        summary.frames += 1
-                    elif "imus" in packet:
-                        imu = packet["imus"]
-                        accel = np.stack([imu[f"accelerometer_{a}"] for a in "xyz"], axis=1)
-                        gyro = np.stack([imu[f"gyroscope_{a}"] for a in "xyz"], axis=1)
-                        writer.append_imu(
-                            ImuSamples(
-                                imu["t"].astype(np.int64) - t_offset,
-                                accel * STANDARD_GRAVITY,
-                                np.deg2rad(gyro),
-                                imu["temperature"],
-                            )
+    # DV writes 8-bit frames: 8 significant bits of the sensor's 10.
+    with (
+        partial_output(dst) as tmp,
+        SessionWriter(tmp, sensor, attrs=attrs, overwrite=True, frame_bits=8) as writer,
+    ):
+        batch: list[np.ndarray] = []
+        batch_n = 0
+        try:
+            for index, packet in enumerate(decoder()):
+                if "events" in packet:
+                    batch.append(packet["events"])
+                    batch_n += packet["events"].size
+                    if batch_n >= _EVENT_BATCH:
+                        summary.events += _append_events(writer, batch, sensor)
+                        batch, batch_n = [], 0
+                elif "frame" in packet:
+                    writer.append_frames(_frame(packet["frame"], sensor))
+                    summary.frames += 1
+                elif "imus" in packet:
+                    imu = packet["imus"]
+                    accel = np.stack([imu[f"accelerometer_{a}"] for a in "xyz"], axis=1)
+                    gyro = np.stack([imu[f"gyroscope_{a}"] for a in "xyz"], axis=1)
+                    writer.append_imu(
+                        ImuSamples(
+                            imu["t"].astype(np.int64) - t_offset,
+                            accel * STANDARD_GRAVITY,
+                            np.deg2rad(gyro),
+                            imu["temperature"],
                         )
-                        summary.imu += imu.size
-                    elif "triggers" in packet:
-                        trig = packet["triggers"]
-                        writer.append_triggers(
-                            Triggers(trig["t"].astype(np.int64) - t_offset, trig["source"])
-                        )
-                        summary.triggers += trig.size
-                    if index < len(layout.packets):
-                        done += layout.packets[index][2] + 8
-                    if progress:
-                        progress(done, total)
-                if batch:
-                    summary.events += _append_events(writer, batch, sensor)
-            except RuntimeError as e:
-                raise ForeignFormatError(f"{src} is corrupt: {e}") from None
-            except InputError as e:
-                if isinstance(e, ForeignFormatError):
-                    raise
-                raise ForeignFormatError(f"{src}: {e}") from None
-        os.replace(tmp, dst)
-    finally:
-        tmp.unlink(missing_ok=True)
+                    )
+                    summary.imu += imu.size
+                elif "triggers" in packet:
+                    trig = packet["triggers"]
+                    writer.append_triggers(
+                        Triggers(trig["t"].astype(np.int64) - t_offset, trig["source"])
+                    )
+                    summary.triggers += trig.size
+                if index < len(layout.packets):
+                    done += layout.packets[index][2] + 8
+                if progress:
+                    progress(done, total)
+            if batch:
+                summary.events += _append_events(writer, batch, sensor)
+        except RuntimeError as e:
+            raise ForeignFormatError(f"{src} is corrupt: {e}") from None
+        except InputError as e:
+            if isinstance(e, ForeignFormatError):
+                raise
+            raise ForeignFormatError(f"{src}: {e}") from None
     return summary
 
 

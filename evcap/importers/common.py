@@ -1,8 +1,15 @@
-"""What the importers share: the summary they return and the sensors they know by name."""
+"""What the importers share: the summary they return, the sensors they know by name, and how
+they write their output."""
 
 from __future__ import annotations
 
+import contextlib
+import os
+from collections.abc import Iterator
 from dataclasses import dataclass
+from pathlib import Path
+
+from evcap.errors import OutputExistsError
 
 
 @dataclass
@@ -22,3 +29,20 @@ SENSOR_SIZES = {
     "DAVIS240C": (240, 180),
     "DAVIS346": (346, 260),
 }
+
+
+def check_output(dst: Path, overwrite: bool) -> None:
+    if dst.exists() and not overwrite:
+        raise OutputExistsError(f"{dst} exists; choose another name or pass --force")
+
+
+@contextlib.contextmanager
+def partial_output(dst: Path) -> Iterator[Path]:
+    """A path beside ``dst`` to write the session to, renamed to ``dst`` when the block ends
+    without an error: a failed import leaves nothing under ``dst``."""
+    tmp = dst.with_name(dst.name + ".partial")
+    try:
+        yield tmp
+        os.replace(tmp, dst)
+    finally:
+        tmp.unlink(missing_ok=True)

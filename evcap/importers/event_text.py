@@ -42,9 +42,9 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from evcap.errors import InputError, InputNotFoundError, OutputExistsError
+from evcap.errors import InputError, InputNotFoundError
 from evcap.events import Events, check_color_filter
-from evcap.importers.common import SENSOR_SIZES, ImportSummary
+from evcap.importers.common import SENSOR_SIZES, ImportSummary, check_output, partial_output
 from evcap.records import Calibration, Poses
 from evcap.rotations import quat_to_rotmat
 from evcap.session import SensorInfo, SessionWriter
@@ -90,8 +90,7 @@ def import_event_text(
     """
     events_path = _events_path(Path(path))
     folder, output = events_path.parent, Path(output)
-    if output.exists() and not overwrite:
-        raise OutputExistsError(f"{output} exists; choose another name or pass --force")
+    check_output(output, overwrite)
     if (width is None) != (height is None):
         raise InputError("give both the width and the height of the sensor, or neither")
     if width is not None and not (0 < width <= _MAX_COORD and 0 < height <= _MAX_COORD):
@@ -115,7 +114,6 @@ def import_event_text(
         sensor_name = f"Color-{sensor_name}"  # as the AEDAT 4 importer names color sensors
     sensor = SensorInfo(sensor_name, width, height, color_filter, "", _offset(t0))
 
-    tmp = output.with_name(output.name + ".partial")
     summary = ImportSummary(source=f"{FORMAT}, {sensor_name}")
     imported = [EVENTS_FILE]
     left_out: dict[str, int] = {}
@@ -129,7 +127,7 @@ def import_event_text(
     imu = _read_imu(folder / "imu.txt", t0)
     calibration = _read_calibration(folder / "calib.txt", sensor)
     poses = _read_poses(folder / "groundtruth.txt", t0)
-    try:
+    with partial_output(output) as tmp:
         with SessionWriter(tmp, sensor, attrs=attrs, overwrite=True, frame_bits=8) as writer:
             for events, done in _read_events(events_path, (width, height), t0, sensor):
                 writer.append_events(events)
@@ -155,9 +153,6 @@ def import_event_text(
             track.write(tmp)
             imported.append("groundtruth.txt")
         _set_root_attrs(tmp, imported, {k: v for k, v in left_out.items() if v})
-        os.replace(tmp, output)
-    finally:
-        tmp.unlink(missing_ok=True)
     if progress:
         progress(total, total)
     return summary

@@ -33,9 +33,9 @@ from rosbags.serde import SerdeError
 from rosbags.typesys import TypesysError
 from rosbags.typesys.store import Typestore
 
-from evcap.errors import ForeignFormatError, InputError, InputNotFoundError, OutputExistsError
+from evcap.errors import ForeignFormatError, InputError, InputNotFoundError
 from evcap.events import Events, check_color_filter
-from evcap.importers.common import SENSOR_SIZES, ImportSummary
+from evcap.importers.common import SENSOR_SIZES, ImportSummary, check_output, partial_output
 from evcap.importers.ros_events import (
     DecodedEvents,
     PacketDecoder,
@@ -419,12 +419,10 @@ def import_ros_bag(
     to a temporary name and renamed when complete. ``progress(done, total)`` counts messages.
     """
     src, dst = Path(path), Path(output)
-    if dst.exists() and not overwrite:
-        raise OutputExistsError(f"{dst} exists; choose another name or pass --force")
+    check_output(dst, overwrite)
     if color_filter is not None:
         check_color_filter(color_filter)
-    tmp = dst.with_name(dst.name + ".partial")
-    try:
+    with partial_output(dst) as tmp:
         known = known_types()
         with (
             _bag_path(src) as (bag, container),
@@ -446,9 +444,6 @@ def import_ros_bag(
             ) as writer:
                 summary = _copy(reader, plan, writer, progress)
             summary.source = _describe(plan, container, sensor)
-        os.replace(tmp, dst)
-    finally:
-        tmp.unlink(missing_ok=True)
     return summary
 
 
