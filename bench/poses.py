@@ -1,9 +1,11 @@
 """Poses from the events against the truth: `evcap poses` on simulated sessions with a known
 trajectory (an orbit, and a hand-held path), the estimate aligned to the truth by a similarity;
-then the reconstruction (`tiny`, stage I) of the single-object scene on the estimated poses
-against on the true ones. Prints the figures and writes results/poses.json.
+then the reconstruction (stage I, the demo's settings) of the single-object scene on the true
+poses, on the estimated ones, and on those refined by the reconstruction, whose errors against
+the truth are measured too. Prints the figures and writes results/poses.json.
 
-    python bench/poses.py [--scenes single_object charuco_board] [--frames filter] [--no-gyro]
+    python bench/poses.py [--scenes single_object charuco_board demo_orbit] [--frames filter]
+                          [--no-gyro]
 """
 
 from __future__ import annotations
@@ -20,14 +22,16 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import RESULTS, report, session_of  # noqa: E402
 
+RECONSTRUCTED = ("single_object", "demo_orbit")  # scenes whose held-out views are scored
+
 
 def poses_against_truth(path: Path, work: Path, kind: str, gyro: bool) -> tuple[dict, Path]:
     """Estimate the poses of a copy of the session; errors after a similarity alignment.
     Returns the figures and the copy, whose /poses then holds the aligned estimate."""
-    from evcap.poses.align import align_similarity, apply_similarity, pose_errors
     from evcap.poses.estimate import estimate_poses
     from evcap.records import Poses
     from evcap.session import Session
+    from evcap.trajectory_alignment import align_similarity, apply_similarity, pose_errors
 
     copy = work / f"{path.stem}_{kind}.h5"
     shutil.copy(path, copy)
@@ -70,18 +74,46 @@ def poses_against_truth(path: Path, work: Path, kind: str, gyro: bool) -> tuple[
 
 
 def reconstruction_difference(true_session: Path, estimated: Path, work: Path) -> dict:
-    """Stage I (tiny) on the true poses and on the aligned estimated ones: the held-out views'
-    object figures, and the whole image's."""
-    from evcap.recon.reconstruct import reconstruct
+    """Stage I (the demo's: 1,000 steps at half scale) on the true poses, on the aligned
+    estimated ones, and on those refined by stage I itself (`--refine-poses on`): the held-out
+    views' object figures, the whole image's, and the refined poses' errors against the truth."""
+    from evcap.demo import STAGE_I
+    from evcap.recon.reconstruct import POSES_FILE, reconstruct
+    from evcap.records import GroundTruth, Poses
+    from evcap.session import Session
+    from evcap.trajectory_alignment import pose_errors
 
     out = {}
-    for name, session in (("true", true_session), ("estimated", estimated)):
-        f = reconstruct(session, work / f"recon_{name}", preset="tiny", stage="radiance").figures
+    runs = (("true", true_session, "off"), ("estimated", estimated, "off"))
+    for name, session, refine in (*runs, ("refined", estimated, "on")):
+        t0 = time.perf_counter()
+        f = reconstruct(
+            session,
+            work / f"recon_{name}",
+            preset="tiny",
+            stage="radiance",
+            radiance_settings=STAGE_I["tiny"],
+            refine_poses=refine,
+        ).figures
+        out[f"recon_{name}_poses_seconds"] = time.perf_counter() - t0
         for key in ("object_psnr_cc", "object_psnr_constant", "normal_mae_deg", "render_psnr_cc"):
             out[f"recon_{name}_poses_{key}"] = getattr(f, key)
-    out["recon_object_psnr_cc_loss_db"] = (
-        out["recon_true_poses_object_psnr_cc"] - out["recon_estimated_poses_object_psnr_cc"]
-    )
+    for name in ("estimated", "refined"):
+        out[f"recon_object_psnr_cc_loss_db_{name}"] = (
+            out["recon_true_poses_object_psnr_cc"] - out[f"recon_{name}_poses_object_psnr_cc"]
+        )
+    with Session.open(true_session) as s:
+        truth = GroundTruth.read(s).poses()
+    with Session.open(estimated) as s:
+        given = Poses.read(s)
+    refined = Poses.read_file(work / "recon_refined" / POSES_FILE)
+    for name, poses in (("estimated", given), ("refined", refined)):
+        inside = (poses.t >= truth.start) & (poses.t <= truth.end)
+        T_true = truth.at(poses.t[inside])
+        for by in ("centres", "poses"):
+            e = pose_errors(poses.T_world_cam[inside], T_true, by=by)
+            for k in ("rotation_median_deg", "translation_median_pct"):
+                out[f"{name}_{k}_aligned_by_{by}"] = e[k]
     return out
 
 
@@ -98,8 +130,9 @@ def main() -> None:
             path = session_of(scene)
             part, copy = poses_against_truth(path, work, args.frames, not args.no_gyro)
             figures.update(part)
-            if scene == "single_object":
-                figures.update(reconstruction_difference(path, copy, work))
+            if scene in RECONSTRUCTED:
+                part = reconstruction_difference(path, copy, work / scene)
+                figures.update({f"{scene}_{k}": v for k, v in part.items()})
     report("poses" if not args.no_gyro else "poses_no_gyro", figures)
 
 

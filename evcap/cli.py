@@ -20,6 +20,7 @@ from evcap.recon.config import (
     DEVICES,
     EFFECT_MODES,
     PRESET_NAMES,
+    REFINE_POSES,
     STAGES,
     ZERO_EVENTS,
 )
@@ -295,6 +296,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
             indirect="off" if "indirect" in without else args.indirect,
             ablate=tuple(ABLATION_FLAGS[w] for w in sorted(without) if w in ABLATION_FLAGS),
             relight=args.relight,
+            refine_poses=args.refine_poses,
+            write_poses=args.write_poses,
             overwrite=args.force,
             resume=not args.force,
             say=print,
@@ -720,6 +723,19 @@ def build_parser() -> argparse.ArgumentParser:
         "--relight",
         metavar="ENV",
         help="also render the views under this environment (latitude-longitude image, z up)",
+    )
+    p.add_argument(
+        "--refine-poses",
+        default="off",
+        choices=REFINE_POSES,
+        help="stage I corrects the camera's path with the events and writes it to "
+        "OUT/poses.h5 (auto: when `evcap poses` estimated it; default off: not yet measured "
+        "to help)",
+    )
+    p.add_argument(
+        "--write-poses",
+        action="store_true",
+        help="also replace the session's /poses with the refined path",
     )
     p.add_argument(
         "-f",

@@ -228,10 +228,10 @@ def _register(ctx: DemoContext) -> str:
     """Bring the simulator's truth into the session and the estimated poses onto it (a
     similarity), so that the reconstruction is measured against the true held-out views. Only
     the evaluation uses the truth: the poses were estimated from the events alone."""
-    from evcap.poses.align import apply_similarity, pose_errors
     from evcap.records import GroundTruth, Poses
     from evcap.session import Session
     from evcap.sim.truth import copy_truth
+    from evcap.trajectory_alignment import apply_similarity, pose_errors
 
     copy_truth(ctx.fixtures / SCENE / "truth.h5", ctx.scene, replace=True)
     with Session.open(ctx.scene) as s:

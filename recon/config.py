@@ -18,6 +18,7 @@ Backend = Literal["cpu", "torch", "gsplat"]  # the rasterizer (recon/rasterize.p
 ZeroEvents = Literal["target", "bound"]  # what a pixel without events says
 EffectMode = Literal["auto", "on", "off"]  # stage II's visibility and indirect light
 Ablation = Literal["anchor", "tv", "distill"]  # stage II's terms that can be left out
+RefinePoses = Literal["auto", "on", "off"]  # auto: when the poses were estimated by evcap
 STAGES: tuple[Stage, ...] = get_args(Stage)
 PRESET_NAMES: tuple[Preset, ...] = get_args(Preset)
 DEVICES: tuple[Device, ...] = get_args(Device)
@@ -25,6 +26,7 @@ BACKENDS: tuple[Backend, ...] = get_args(Backend)
 ZERO_EVENTS: tuple[ZeroEvents, ...] = get_args(ZeroEvents)
 EFFECT_MODES: tuple[EffectMode, ...] = get_args(EffectMode)
 ABLATIONS: tuple[Ablation, ...] = get_args(Ablation)
+REFINE_POSES: tuple[RefinePoses, ...] = get_args(RefinePoses)
 # the command line's names of the ablations (`evcap reconstruct --without NAME`)
 ABLATION_FLAGS: dict[str, Ablation] = {
     "anchor": "anchor",
@@ -109,6 +111,16 @@ class RadianceConfig:
     min_opacity: float = 0.005  # pruned below
     opacity_reset_every: int = 0  # steps; 0: never (resets upset the event loss on short runs)
     background_size: int = 64  # texels along an edge of each face of the background cube map
+    # the trajectory refined by the event loss (recon/pose_refinement.py): a correction per
+    # keyframe, one every pose_keyframe_ms, learnt from pose_from of the run on by Adam at these
+    # rates (radians; fractions of the scene's extent), which decay tenfold by the end; their
+    # second differences along the keyframes weighted by pose_smooth_weight
+    refine_poses: bool = False
+    pose_keyframe_ms: float = 100.0
+    pose_from: float = 0.2
+    lr_pose_rotation: float = 1e-3
+    lr_pose_shift: float = 1e-3
+    pose_smooth_weight: float = 1.0
 
 
 @dataclass
@@ -235,6 +247,8 @@ def check(config: RadianceConfig) -> None:
         raise InputError("views_per_step must be at least 2 (a window needs two views)")
     if not 0 <= config.init_on_points <= 1:
         raise InputError("init_on_points is a share of init_gaussians, in [0, 1]")
+    if not 0 <= config.pose_from < 1 or config.pose_keyframe_ms <= 0:
+        raise InputError("pose_from is a fraction of the run, in [0, 1); pose_keyframe_ms > 0")
 
 
 def to_dict(config: RadianceConfig | MaterialConfig) -> dict:

@@ -34,6 +34,12 @@ from evcap.recon.losses import (
     quiet_variation_loss,
 )
 from evcap.recon.optics import CHANNEL_WEIGHTS, RenderGrid, SensorOptics, render_grid
+from evcap.recon.pose_refinement import (
+    PoseCorrections,
+    moved,
+    near_identity_quat,
+    quat_multiply,
+)
 from evcap.recon.rasterize import Camera, Render, rasterize
 from evcap.recon.resume import Steps, random_states, restore_random_states
 from evcap.recon.volume import SceneVolume, sample_points, scene_volume
@@ -90,7 +96,7 @@ class RadianceField(torch.nn.Module):
 
     def render(
         self,
-        T_world_cam: np.ndarray,
+        T_world_cam: np.ndarray | torch.Tensor,
         grid: RenderGrid,
         sh_degree: int | None = None,
         spread: bool = False,
@@ -98,20 +104,32 @@ class RadianceField(torch.nn.Module):
     ) -> Render:
         """The view; with ``spread``, color has a fourth channel: sum w z^2, the composited
         second moment of the Gaussians' depths (its spread about the expected depth is
-        what the depth-spread loss takes); ``hidden`` renders the background alone."""
+        what the depth-spread loss takes); ``hidden`` renders the background alone. A pose
+        given as a tensor that requires grad gets the render's gradient."""
         device = self.gaussians.means.device
+        g = self.gaussians
+        means, quats, seen_from = g.means, g.quats, None
+        if isinstance(T_world_cam, torch.Tensor) and T_world_cam.requires_grad:
+            M = moved(T_world_cam).to(device, torch.float32)
+            means = means @ M[:3, :3].T + M[:3, 3]
+            quats = quat_multiply(near_identity_quat(M[:3, :3]), quats)
+            corrected = torch.linalg.inv(T_world_cam).to(device, torch.float32)
+            seen_from = Camera(corrected, grid.K, grid.width, grid.height)
+        if isinstance(T_world_cam, torch.Tensor):
+            T_world_cam = T_world_cam.detach().cpu().numpy()
         viewmat = torch.as_tensor(np.linalg.inv(T_world_cam), dtype=torch.float32, device=device)
         cam = Camera(viewmat, grid.K, grid.width, grid.height)
-        g = self.gaussians
-        colors = g.radiance(cam.center, sh_degree)
-        bg = self.background(pixel_directions(cam))
+        if seen_from is None:
+            seen_from = cam
+        colors = g.radiance(seen_from.center, sh_degree)
+        bg = self.background(pixel_directions(seen_from))
         if spread:
-            z = g.means @ viewmat[2, :3] + viewmat[2, 3]
+            z = means @ viewmat[2, :3] + viewmat[2, 3]
             colors = torch.cat([colors, (z * z)[:, None]], 1)
             bg = torch.cat([bg, bg.new_zeros(*bg.shape[:-1], 1)], -1)
         return rasterize(
-            g.means,
-            g.quats,
+            means,
+            quats,
             g.scales,
             g.opacities * 0 if hidden else g.opacities,
             colors,
@@ -154,6 +172,7 @@ class Fit:
     interrupted: bool
     history: list[dict] = dataclasses.field(default_factory=list)  # the evaluations along the way
     steps: int = 0  # the steps done
+    corrections: PoseCorrections | None = None  # the trajectory's, when it was refined
 
 
 def new_field(
@@ -222,6 +241,7 @@ def train_radiance(
     extent = data.volume.radius
     optimizer = make_optimizer(field.gaussians, field.background, config, extent)
     densifier = Densifier(config, extent, data.volume)
+    corrections, pose_optimizer = _pose_corrections(data, config, extent)
     rng = np.random.default_rng(seed + 1)
     log: list[StepLog] = []
     history: list[dict] = []
@@ -232,11 +252,19 @@ def train_radiance(
         restore_random_states(rng, resume["random"])
         log = [StepLog(**x) for x in resume["log"]]
         history = list(resume["history"])
+        if corrections is not None:
+            corrections.load_state_dict(resume["corrections"])
+            pose_optimizer.load_state_dict(resume["pose_optimizer"])
     degree_every = max(config.iterations // 30, 1)
     evaluate_at = set(np.linspace(0, config.iterations, evaluations + 1)[1:].round().astype(int))
 
     def state() -> dict:
+        poses = {}
+        if corrections is not None:
+            poses["corrections"] = corrections.state_dict()
+            poses["pose_optimizer"] = pose_optimizer.state_dict()
         return {
+            **poses,
             "step": steps.step,
             "gaussians": field.gaussians.state_dict(),
             "background": field.background.faces.detach(),
@@ -257,7 +285,17 @@ def train_radiance(
             grid = data.grid
             if data.coarse_grid is not None and step <= config.coarse_until * config.iterations:
                 grid = data.coarse_grid
-            renders, total, terms = _losses(field, data, grid, config, frames, sh_degree, step)
+            refining = corrections is not None and step > config.pose_from * config.iterations
+            renders, total, terms = _losses(
+                field,
+                data,
+                grid,
+                config,
+                frames,
+                sh_degree,
+                step,
+                corrections if refining else None,
+            )
             if not torch.isfinite(total):
                 raise NumericalError(f"stage I: the loss became {float(total)} at step {step}")
             total.backward()
@@ -269,6 +307,8 @@ def train_radiance(
                     group["lr"] = means_lr(config, extent, step)
             optimizer.step()
             optimizer.zero_grad(set_to_none=True)
+            if refining:
+                _pose_step(pose_optimizer, corrections, config, step)
             with torch.no_grad():
                 q = field.gaussians.quats
                 q.data = F.normalize(q.data, dim=1)  # any length is a rotation; keep off zero
@@ -287,7 +327,43 @@ def train_radiance(
             steps.end()
             if progress:
                 progress(step, config.iterations, f"loss {loss:.4f}  {n:,} Gaussians")
-    return Fit(field, log, steps.interrupted, history, steps.step)
+    return Fit(field, log, steps.interrupted, history, steps.step, corrections)
+
+
+def _pose_corrections(
+    data: TrainingData, config: RadianceConfig, extent: float
+) -> tuple[PoseCorrections | None, torch.optim.Optimizer | None]:
+    """The trajectory's corrections and their optimiser, when the config refines poses."""
+    if not config.refine_poses:
+        return None, None
+    times = data.windows.frame_times
+    every = round(config.pose_keyframe_ms * 1000)
+    corrections = PoseCorrections(data.track, int(times[0]), int(times[-1]), every, extent)
+    optimizer = torch.optim.Adam(
+        [
+            {"params": [corrections.rotation], "lr": config.lr_pose_rotation, "name": "rotation"},
+            {"params": [corrections.shift], "lr": config.lr_pose_shift, "name": "shift"},
+        ],
+        eps=1e-15,
+    )
+    return corrections, optimizer
+
+
+def _pose_step(
+    optimizer: torch.optim.Optimizer,
+    corrections: PoseCorrections,
+    config: RadianceConfig,
+    step: int,
+) -> None:
+    """One step of the corrections, their rates decayed tenfold over the refinement."""
+    start = config.pose_from * config.iterations
+    progress = (step - start) / max(config.iterations - start, 1)
+    for group in optimizer.param_groups:
+        base = config.lr_pose_rotation if group["name"] == "rotation" else config.lr_pose_shift
+        group["lr"] = base * 0.1**progress
+    optimizer.step()
+    optimizer.zero_grad(set_to_none=True)
+    corrections.fix_gauge()
 
 
 def draw_frames(rng: np.random.Generator, frames: int, config: RadianceConfig) -> np.ndarray:
@@ -338,10 +414,14 @@ def _losses(
     frames: np.ndarray,
     sh_degree: int,
     step: int,
+    corrections: PoseCorrections | None = None,
 ) -> tuple[list[Render], torch.Tensor, dict[str, float]]:
-    """The renders on ``grid`` at the frames, and the loss of every window between two of
-    them."""
-    poses = data.track.at(data.windows.frame_times[frames])
+    """The renders on ``grid`` at the frames (from the corrected poses when ``corrections``
+    are given), and the loss of every window between two of them."""
+    times = data.windows.frame_times[frames]
+    poses = data.track.at(times)
+    if corrections is not None:
+        poses = corrections.apply(poses, times)
     spread = config.spread_weight > 0
     hidden = step <= config.background_first * config.iterations
     renders = [field.render(T, grid, sh_degree, spread, hidden) for T in poses]
@@ -349,6 +429,8 @@ def _losses(
     ev = windows_event_loss(data, config, frames, seen)
     an = anchor_loss(torch.cat(seen), config.anchor_level)
     total = ev + config.anchor_weight * an
+    if corrections is not None:
+        total = total + config.pose_smooth_weight * corrections.smoothness()
     terms = {"event": ev.item(), "anchor": an.item(), "normal": 0.0}
     if config.quiet_tv_weight > 0:
         H, W = data.optics.height, data.optics.width

@@ -22,12 +22,14 @@ from evcap.recon import resume as resume_
 from evcap.recon.config import (
     ABLATIONS,
     DEVICES,
+    REFINE_POSES,
     STAGES,
     Ablation,
     Backend,
     Device,
     EffectMode,
     Preset,
+    RefinePoses,
     Stage,
     ZeroEvents,
 )
@@ -63,13 +65,16 @@ from evcap.recon.radiance import (
 )
 from evcap.recon.rasterize import pick_backend
 from evcap.recon.shading import mip_chain
-from evcap.records import Figures, GroundTruth, ReconstructionResult, TruthViews
+from evcap.records import Figures, GroundTruth, Poses, ReconstructionResult, TruthViews
 from evcap.records.result import RESULT_FILE
 from evcap.session import Session
+from evcap.trajectory_alignment import apply_similarity, pose_errors
 
 Training = Literal["radiance", "material"]  # stage I, stage II
 TRACK_VIEWS = 8  # views rendered along the path when the session has no held-out views
 HISTORY_VIEWS = 2  # held-out views rendered for the accuracy-versus-time curve
+POSES_FILE = "poses.h5"  # OUT's refined trajectory
+ESTIMATED = ("evcap poses", "evcap reconstruct")  # sources of poses --refine-poses auto refines
 
 
 def pick_device(name: Device) -> Device:
@@ -134,6 +139,8 @@ def reconstruct(
     indirect: EffectMode | None = None,
     ablate: tuple[Ablation, ...] = (),
     relight: str | Path | None = None,
+    refine_poses: RefinePoses = "off",
+    write_poses: bool = False,
     overwrite: bool = False,
     resume: bool = True,
     say: Callable[[str], None] = lambda line: None,
@@ -142,9 +149,13 @@ def reconstruct(
     """Run the reconstruction; returns what it wrote to OUT/metrics.json. ``radiance_settings``:
     stage I's (RadianceConfig's fields) over the preset's. With ``resume``, a
     stage interrupted in OUT with the same session and settings goes on from where it
-    stopped; ``overwrite`` lets a finished (or differently started) one be replaced."""
+    stopped; ``overwrite`` lets a finished (or differently started) one be replaced.
+    ``refine_poses``: stage I refines the trajectory (auto: when evcap estimated it) and writes
+    it to OUT/poses.h5; ``write_poses`` also makes it the session's /poses."""
     if stage not in STAGES:
         raise InputError(f"unknown stage {stage!r}; expected one of {', '.join(STAGES)}")
+    if refine_poses not in REFINE_POSES:
+        raise InputError(f"--refine-poses must be one of {', '.join(REFINE_POSES)}")
     if set(ablate) - set(ABLATIONS):
         raise InputError(f"unknown ablation(s) {sorted(set(ablate) - set(ABLATIONS))}")
     runs = _trainings(stage)
@@ -165,6 +176,9 @@ def reconstruct(
         config = cfg.preset(preset, **overrides)
     started = time.perf_counter()
     with Session.open(session_path) as session:
+        if "radiance" in runs:
+            refines = _refines(refine_poses, Poses.read(session))
+            config = dataclasses.replace(config, refine_poses=refines)
         session_id = resume_.session_fingerprint(session)
         settings = {
             "radiance": {"config": cfg.to_dict(config), "seed": seed, "session": session_id},
@@ -178,18 +192,19 @@ def reconstruct(
         if "radiance" in runs and states["radiance"] is None and states["material"] is not None:
             field, _ = load_checkpoint(out / "checkpoint" / "radiance.pt", device, backend)
         data = load_training_data(session, config, device)
+        if "radiance" not in runs and (out / POSES_FILE).exists():  # stage I refined them
+            data.track = Poses.read_file(out / POSES_FILE)
         gt = GroundTruth.read(session) if GroundTruth.present(session) else None
         truth = gt.held_out_views() if gt is not None else TruthViews(np.zeros((0, 4, 4)))
         if environment is not None:  # another light than the truth's: shown, not scored
             truth = truth.without("relit_radiance")
         elif gt is not None and truth.relit_radiance is not None:
             environment = gt.relight_environment.astype(np.float64)
-        poses = truth.T_world_cam
-        if not len(poses):
-            times = np.linspace(
-                data.windows.frame_times[0], data.windows.frame_times[-1], TRACK_VIEWS
-            )
-            poses = data.track.at(times.astype(np.int64))
+
+        def poses_of(track: Poses) -> np.ndarray:
+            return _view_poses(track, data.windows.frame_times, truth, gt)
+
+        poses = poses_of(data.track)
         out.mkdir(parents=True, exist_ok=True)
         # stage I is not run again for stage II alone, nor to go on with an interrupted stage II
         skip = "radiance" not in runs or states["material"] is not None
@@ -200,10 +215,10 @@ def reconstruct(
         if not skip:
             if states["radiance"] is not None:
                 say(_going_on("stage I", states["radiance"], config.iterations))
-            fit, figures = _stage_radiance(
+            fit, figures, data.track = _stage_radiance(
                 data,
                 config,
-                poses,
+                poses_of,
                 truth,
                 out,
                 seed,
@@ -214,6 +229,7 @@ def reconstruct(
                 settings["radiance"],
             )
             field = fit.field
+            poses = poses_of(data.track)
             result.figures = Figures.of(figures)
             result.seconds = time.perf_counter() - started
             if states["radiance"] is not None:  # and the time it took before
@@ -275,7 +291,40 @@ def reconstruct(
         sections["material"] = cfg.to_dict(mconfig)
     write_toml(sections, out / "config.toml")
     result.write(out)
+    if write_poses and (out / POSES_FILE).exists():
+        Poses.read_file(out / POSES_FILE).write(session_path)
     return result
+
+
+def _refines(choice: RefinePoses, track: Poses) -> bool:
+    match choice:
+        case "on":
+            return True
+        case "off":
+            return False
+        case "auto":
+            return track.source.startswith(ESTIMATED)
+        case _:
+            assert_never(choice)
+
+
+def _view_poses(
+    track: Poses, frame_times: np.ndarray, truth: TruthViews, gt: GroundTruth | None
+) -> np.ndarray:
+    """The poses of the views scored (the truth's held-out views) or shown (along the path),
+    in the world of ``track``. A refined track's world is the estimate's, moved a little
+    (its gauge is its first keyframe): the held-out views are brought into it by the
+    similarity that best maps it onto the true path (by orientations and centres)."""
+    if not len(truth):
+        times = np.linspace(frame_times[0], frame_times[-1], TRACK_VIEWS).astype(np.int64)
+        return track.at(times)
+    if gt is None or "refinement_keyframes" not in track.notes:
+        return truth.T_world_cam
+    true = gt.poses()
+    inside = (track.t >= true.start) & (track.t <= true.end)
+    fit = pose_errors(track.T_world_cam[inside], true.at(track.t[inside]), by="poses")
+    scale, R = fit["scale"], fit["R"]
+    return apply_similarity(truth.T_world_cam, 1 / scale, R.T, -R.T @ fit["t"] / scale)
 
 
 def _previous_result(out: Path) -> ReconstructionResult:
@@ -325,7 +374,7 @@ def _going_on(name: str, state: dict, iterations: int) -> str:
 def _stage_radiance(
     data: TrainingData,
     config: cfg.RadianceConfig,
-    poses: np.ndarray,
+    poses_of: Callable[[Poses], np.ndarray],
     truth: TruthViews,
     out: Path,
     seed: int,
@@ -334,8 +383,10 @@ def _stage_radiance(
     progress: Callable[[int, int, str], None] | None,
     state: dict | None,
     settings: dict,
-) -> tuple[Fit, dict[str, float | None]]:
-    """Stage I and its outputs; (the fit, its figures on the views at ``poses``)."""
+) -> tuple[Fit, dict[str, float | None], Poses]:
+    """Stage I and its outputs; (the fit, its figures on the views at ``poses_of`` the
+    trajectory, the trajectory: refined when the config says so, written to OUT/poses.h5)."""
+    poses = poses_of(data.track)  # the evaluations along the way: the input's
 
     def evaluate(field: RadianceField) -> dict:
         views = render_views(field, poses[:HISTORY_VIEWS], data.optics, device)
@@ -361,7 +412,13 @@ def _stage_radiance(
         save_state=lambda s: resume_.save_state(path, s, settings),
     )
     field = fit.field
-    views = render_views(field, poses, data.optics, device)
+    track = data.track
+    if fit.corrections is not None:
+        track = fit.corrections.refined(track)
+        track.write_file(out / POSES_FILE)
+    else:
+        (out / POSES_FILE).unlink(missing_ok=True)
+    views = render_views(field, poses_of(track), data.optics, device)
     scored = bool(truth.maps())
     figures = metrics(views, truth) if scored else {}
     cc = None if truth.radiance is None else fit_color_correction(views["radiance"], truth.radiance)
@@ -370,7 +427,7 @@ def _stage_radiance(
     save_checkpoint(field, cfg.to_dict(config), out / "checkpoint" / "radiance.pt")
     if not fit.interrupted:
         path.unlink(missing_ok=True)
-    return fit, figures
+    return fit, figures, track
 
 
 def _material_outputs(

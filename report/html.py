@@ -372,7 +372,7 @@ def _calibration_maps(cal: Calibration) -> str:
 
 
 def _trajectory_section(s: Session) -> str:
-    from evcap.poses.align import apply_similarity, pose_errors
+    from evcap.trajectory_alignment import apply_similarity, pose_errors
 
     if not Poses.present(s):
         return _missing("The session has no /poses group (run `evcap poses` on it).")

@@ -10,6 +10,7 @@ import dataclasses
 import os
 from dataclasses import dataclass, field
 
+import h5py
 import numpy as np
 
 from evcap.errors import InputError
@@ -89,7 +90,22 @@ class Poses:
         except InputError as e:
             raise InputError(f"{place}: {e}") from None
 
+    @classmethod
+    def read_file(cls, path: str | os.PathLike) -> Poses:
+        """The /poses of the HDF5 file at ``path``: a session's, or a trajectory's own file."""
+        try:
+            f = h5py.File(path, "r")
+        except OSError as e:
+            raise InputError(f"{path}: not a readable HDF5 file ({e})") from None
+        with f:
+            return cls.read(f)
+
     # -- writing -----------------------------------------------------------------------------
+
+    def write_file(self, path: str | os.PathLike) -> None:
+        """Store as the /poses of a new HDF5 file of its own at ``path`` (replaced if there)."""
+        h5py.File(path, "w").close()
+        self.write(path)
 
     def write(self, path: str | os.PathLike, *, replace: bool = True) -> None:
         """Store as the /poses of the (closed) session, or other HDF5 file, at ``path``."""

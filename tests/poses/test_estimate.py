@@ -9,10 +9,10 @@ import pytest
 
 from evcap.cli import main
 from evcap.errors import InputError
-from evcap.poses.align import pose_errors
 from evcap.poses.estimate import estimate_poses
 from evcap.records import Poses
 from evcap.session import Session
+from evcap.trajectory_alignment import pose_errors
 
 
 def test_poses_from_the_events(board_session, tmp_path, capsys):

@@ -7,12 +7,12 @@ import pytest
 
 from evcap.errors import InputError
 from evcap.poses import gyro as gyro_module
-from evcap.poses.align import align_similarity
 from evcap.poses.gyro import fit_gyro, integrate
 from evcap.poses.refine import refine_positions
 from evcap.poses.sfm import Observations
 from evcap.rotations import exp_so3, log_so3, skew
 from evcap.sim.trajectory import look_at
+from evcap.trajectory_alignment import align_similarity
 
 
 def transposed(R: np.ndarray) -> np.ndarray:

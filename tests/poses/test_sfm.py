@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from evcap.errors import InputError, PosesError
-from evcap.poses.align import pose_errors
 from evcap.poses.sfm import MAX_KEYFRAMES, OVERLAP, colmap_camera, loop_pairs, run_sfm
 from evcap.sim.render import Renderer
 from evcap.sim.scene import load_scene
 from evcap.sim.trajectory import Trajectory
+from evcap.trajectory_alignment import pose_errors
 
 pytest.importorskip("pycolmap")
 

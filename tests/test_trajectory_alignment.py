@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from evcap.errors import InputError
-from evcap.poses.align import align_similarity, apply_similarity, pose_errors
 from evcap.sim.trajectory import look_at, rotation_about
+from evcap.trajectory_alignment import align_similarity, apply_similarity, pose_errors
 
 
 def random_rotation(rng) -> np.ndarray:

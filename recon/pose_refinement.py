@@ -1,0 +1,137 @@
+"""The camera's trajectory refined by stage I's event loss (issue 22).
+
+Each keyframe (one every ``pose_keyframe_ms`` along the recording) carries a small rigid
+correction: a rotation about the camera's centre (an axis-angle vector in world axes, radians)
+and a shift of the centre (in units of the scene's extent). Between keyframes the corrections
+are interpolated linearly, so the corrected path stays as smooth as the one it corrects. The
+gauge is fixed after every step: the first keyframe is not corrected, and the shifts keep the
+path's scale (no part of them stretches the path about its first centre), since the events
+cannot tell a larger scene seen from further away.
+
+The rasterizer differentiates the Gaussians, not the camera, so a corrected view is rendered
+with the Gaussians moved by the correction's inverse (``moved``): the identity in value,
+whose gradient reaches the correction.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from evcap.records import Poses
+
+
+def exp_so3(w: torch.Tensor) -> torch.Tensor:
+    """[..., 3] axis-angle vectors -> [..., 3, 3] rotation matrices; smooth at zero (the
+    series of sin and cos to the sixth order, exact well beyond the corrections' size)."""
+    theta2 = (w * w).sum(-1)[..., None, None]
+    a = 1 - theta2 / 6 + theta2 * theta2 / 120 - theta2**3 / 5040
+    b = 0.5 - theta2 / 24 + theta2 * theta2 / 720 - theta2**3 / 40320
+    x, y, z = w.unbind(-1)
+    zero = torch.zeros_like(x)
+    k = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*w.shape[:-1], 3, 3)
+    eye = torch.eye(3, dtype=w.dtype, device=w.device)
+    return eye + a * k + b * (k @ k)
+
+
+def near_identity_quat(R: torch.Tensor) -> torch.Tensor:
+    """[3, 3] rotation (far from a half turn) -> its quaternion (w, x, y, z), differentiable."""
+    w = (1 + R[0, 0] + R[1, 1] + R[2, 2]).clamp_min(1e-8).sqrt() / 2
+    xyz = torch.stack([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (4 * w)
+    return torch.cat([w[None], xyz])
+
+
+def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """a [4] times each of b [N, 4] (w, x, y, z): the rotation b, then a."""
+    w0, x0, y0, z0 = a.unbind(-1)
+    w1, x1, y1, z1 = b.unbind(-1)
+    return torch.stack(
+        [
+            w0 * w1 - x0 * x1 - y0 * y1 - z0 * z1,
+            w0 * x1 + x0 * w1 + y0 * z1 - z0 * y1,
+            w0 * y1 - x0 * z1 + y0 * w1 + z0 * x1,
+            w0 * z1 + x0 * y1 - y0 * x1 + z0 * w1,
+        ],
+        -1,
+    )
+
+
+def moved(T_world_cam: torch.Tensor) -> torch.Tensor:
+    """[4, 4] world-to-world: rendering Gaussians moved by it from the camera
+    ``T_world_cam.detach()`` is rendering them unmoved from ``T_world_cam``. Its value is the
+    identity; its gradient is the pose's."""
+    return T_world_cam.detach() @ torch.linalg.inv(T_world_cam)
+
+
+class PoseCorrections(torch.nn.Module):
+    """Per-keyframe corrections of a trajectory, interpolated in time."""
+
+    def __init__(self, track: Poses, start: int, end: int, interval_us: int, extent: float):
+        super().__init__()
+        count = max(int(np.ceil((end - start) / max(interval_us, 1))) + 1, 2)
+        self.times = np.linspace(start, end, count).round().astype(np.int64)
+        self.extent = float(extent)
+        self.rotation = torch.nn.Parameter(torch.zeros(count, 3, dtype=torch.float64))
+        self.shift = torch.nn.Parameter(torch.zeros(count, 3, dtype=torch.float64))
+        self.base = torch.from_numpy(track.at(self.times)[:, :3, 3])  # the keyframes' centres
+
+    def __len__(self) -> int:
+        return len(self.times)
+
+    def at(self, t_us: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """The corrections at the given times: rotations [N, 3] (rad) and shifts [N, 3]
+        (scene units); constant beyond the first and last keyframes."""
+        t = np.clip(np.asarray(t_us, np.int64), self.times[0], self.times[-1])
+        i = np.clip(np.searchsorted(self.times, t, side="right") - 1, 0, len(self.times) - 2)
+        s = (t - self.times[i]) / (self.times[i + 1] - self.times[i])
+        s = torch.from_numpy(s.astype(np.float64))[:, None]
+        j = torch.from_numpy(i)
+
+        def lerp(p: torch.Tensor) -> torch.Tensor:
+            return p[j] * (1 - s) + p[j + 1] * s
+
+        return lerp(self.rotation), self.extent * lerp(self.shift)
+
+    def apply(self, T_world_cam: np.ndarray, t_us: np.ndarray) -> torch.Tensor:
+        """The transforms [N, 4, 4] at times ``t_us`` corrected (float64, differentiable)."""
+        w, c = self.at(t_us)
+        T = torch.from_numpy(np.asarray(T_world_cam, np.float64)).clone()
+        R = exp_so3(w) @ T[:, :3, :3]
+        top = torch.cat([R, (T[:, :3, 3] + c)[..., None]], -1)
+        return torch.cat([top, T[:, 3:]], 1)
+
+    def smoothness(self) -> torch.Tensor:
+        """Squared second differences of the keyframes' corrections (rad, extents)."""
+        if len(self) < 3:
+            return self.rotation.sum() * 0
+        d2 = lambda p: p[2:] - 2 * p[1:-1] + p[:-2]  # noqa: E731
+        return (d2(self.rotation) ** 2).sum(1).mean() + (d2(self.shift) ** 2).sum(1).mean()
+
+    @torch.no_grad()
+    def fix_gauge(self) -> None:
+        """The first keyframe uncorrected; no stretch of the path about its first centre."""
+        self.rotation[0] = 0
+        self.shift[0] = 0
+        d = (self.base - self.base[0]) / self.extent
+        norm = (d * d).sum()
+        if norm > 0:
+            self.shift -= ((d * self.shift).sum() / norm) * d
+
+    def refined(self, track: Poses) -> Poses:
+        """``track`` at its own times and the keyframes', corrected."""
+        t = np.union1d(track.t, self.times[(self.times > track.start) & (self.times < track.end)])
+        with torch.no_grad():
+            T = self.apply(track.at(t), t).numpy()
+        w, _ = self.at(t)
+        angles = np.degrees(w.detach().norm(dim=1).numpy())
+        return track.replace(
+            t=t,
+            T_world_cam=T,
+            source=f"evcap reconstruct: refined ({track.source})",
+            notes={
+                "refined_from": track.source,
+                "refinement_keyframes": len(self),
+                "refinement_median_deg": float(np.median(angles)),
+                "refinement_max_deg": float(angles.max()),
+            },
+        )

@@ -1,0 +1,126 @@
+"""Pose refinement's pieces: the corrections, their gauge, and the render's gradient to a pose."""
+
+import numpy as np
+import pytest
+import torch
+
+from evcap.recon.gaussians import Background, Gaussians
+from evcap.recon.optics import RenderGrid
+from evcap.recon.pose_refinement import PoseCorrections, exp_so3
+from evcap.recon.radiance import RadianceField, pixel_directions
+from evcap.recon.rasterize import Camera, rasterize
+from evcap.records import Poses
+from evcap.rotations import exp_so3 as exp_so3_numpy
+from evcap.sim.trajectory import look_at
+
+
+def arc(n: int = 5) -> Poses:
+    """Cameras on an arc about the origin, looking at it, 0.1 s apart."""
+    angles = np.linspace(0, 0.6, n)
+    eyes = np.stack([2 * np.sin(angles), -2 * np.cos(angles), 0.3 * angles], 1)
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = [look_at(e, np.zeros(3)) for e in eyes]
+    T[:, :3, 3] = eyes
+    return Poses(np.arange(n) * 100_000, T)
+
+
+def test_exp_so3_matches_the_numpy_one():
+    for w in ([0, 0, 0], [1e-4, 0, -2e-4], [0.02, -0.05, 0.01], [0.3, 0.2, -0.4]):
+        got = exp_so3(torch.tensor(w, dtype=torch.float64)).numpy()
+        np.testing.assert_allclose(got, exp_so3_numpy(np.array(w, float)), atol=1e-8)
+
+
+def test_zero_corrections_leave_the_track_as_it_was():
+    track = arc()
+    c = PoseCorrections(track, track.start, track.end, 50_000, extent=1.0)
+    assert len(c) == 9
+    refined = c.refined(track)
+    np.testing.assert_allclose(refined.T_world_cam, track.at(refined.t), atol=1e-12)
+    assert refined.source.startswith("evcap reconstruct: refined")
+    assert refined.notes["refined_from"] == track.source
+
+
+def test_the_gauge_fixes_the_first_keyframe_and_the_scale():
+    track = arc()
+    c = PoseCorrections(track, track.start, track.end, 100_000, extent=2.0)
+    with torch.no_grad():
+        c.rotation.normal_(0, 0.01)
+        c.shift.normal_(0, 0.01)
+        c.shift += 0.05 * (c.base - c.base[0]) / c.extent  # a pure stretch, to be removed
+    c.fix_gauge()
+    assert c.rotation[0].abs().max() == 0 and c.shift[0].abs().max() == 0
+    d = (c.base - c.base[0]).numpy()
+    refined = c.refined(track).T_world_cam[np.isin(c.refined(track).t, c.times)]
+    moved = refined[:, :3, 3] - refined[0, :3, 3]
+    scale = (moved * d).sum() / (d * d).sum()
+    assert scale == pytest.approx(1.0, abs=1e-12)
+
+
+def test_corrections_are_linear_between_keyframes_and_constant_beyond():
+    track = arc()
+    c = PoseCorrections(track, 100_000, 300_000, 100_000, extent=1.0)
+    with torch.no_grad():
+        c.rotation[:] = torch.tensor([[0.0, 0, 0], [0.02, 0, 0], [0.04, 0, 0]])
+    w, _ = c.at(np.array([0, 150_000, 250_000, 400_000]))
+    np.testing.assert_allclose(w[:, 0].detach().numpy(), [0.0, 0.01, 0.03, 0.04], atol=1e-12)
+
+
+def field_and_grid() -> tuple[RadianceField, RenderGrid]:
+    g = torch.Generator().manual_seed(0)
+    points = torch.rand(300, 3, generator=g).numpy() - 0.5
+    gaussians = Gaussians.random(points, 0, g, 0.08)
+    with torch.no_grad():
+        gaussians.sh_dc[:, 0] = torch.rand(300, 3, generator=g) * 2 - 1
+        gaussians.opacity_logits[:] = 1.0
+    field = RadianceField(gaussians, Background(8), backend="torch")
+    K = torch.tensor([[40.0, 0, 24], [0, 40, 18], [0, 0, 1]])
+    return field, RenderGrid(K, 48, 36, torch.zeros(1, 1, 0, 2))
+
+
+def corrected_view() -> tuple[PoseCorrections, np.ndarray, np.ndarray]:
+    """Random corrections of the arc, its pose at a time between two keyframes, that time."""
+    track = arc()
+    c = PoseCorrections(track, track.start, track.end, 100_000, extent=1.0)
+    with torch.no_grad():
+        c.rotation.normal_(0, 0.02, generator=torch.Generator().manual_seed(2))
+        c.shift.normal_(0, 0.02, generator=torch.Generator().manual_seed(3))
+    t = np.array([150_000])
+    return c, track.at(t), t
+
+
+def test_a_corrected_pose_renders_as_that_pose_and_gets_its_gradient():
+    field, grid = field_and_grid()
+    c, base, t = corrected_view()
+    T = c.apply(base, t)[0]
+    a = field.render(T, grid).color
+    b = field.render(T.detach().numpy(), grid).color
+    torch.testing.assert_close(a, b, atol=2e-5, rtol=0)
+
+
+def test_the_moved_gaussians_give_the_pose_the_gradient_a_differentiable_camera_would():
+    """The torch backend differentiates the camera too: moving the Gaussians instead gives
+    the same gradient; the compiled backend gives the torch one's."""
+    field, grid = field_and_grid()
+    c, base, t = corrected_view()
+    target = torch.rand(36, 48, 3, generator=torch.Generator().manual_seed(1))
+
+    def grads(render) -> torch.Tensor:
+        c.zero_grad()
+        ((render(c.apply(base, t)[0]) - target) ** 2).sum().backward()
+        return torch.cat([c.rotation.grad[1:3].ravel(), c.shift.grad[1:3].ravel()])
+
+    def camera_itself(T: torch.Tensor) -> torch.Tensor:
+        cam = Camera(torch.linalg.inv(T).float(), grid.K, grid.width, grid.height)
+        g = field.gaussians
+        colors = g.radiance(cam.center)
+        bg = field.background(pixel_directions(cam))
+        args = (g.means, g.quats, g.scales, g.opacities, colors, cam)
+        return rasterize(*args, background=bg, backend="torch").color
+
+    moved = grads(lambda T: field.render(T, grid).color)
+    assert moved.abs().max() > 1
+    torch.testing.assert_close(moved, grads(camera_itself), rtol=1e-3, atol=1e-3)
+    field.backend = "cpu"
+    torch.testing.assert_close(
+        grads(lambda T: field.render(T, grid).color), moved, rtol=0.02, atol=0.02
+    )
