@@ -726,11 +726,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--refine-poses",
-        default="off",
+        default="auto",
         choices=REFINE_POSES,
         help="stage I corrects the camera's path with the events and writes it to "
-        "OUT/poses.h5 (auto: when `evcap poses` estimated it; default off: not yet measured "
-        "to help)",
+        "OUT/poses.h5 (default auto: when `evcap poses` estimated it)",
     )
     p.add_argument(
         "--write-poses",

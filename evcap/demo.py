@@ -257,7 +257,8 @@ def _register(ctx: DemoContext) -> str:
 
 
 def _reconstruct(ctx: DemoContext, stage: str) -> str:
-    from evcap.recon.reconstruct import reconstruct
+    from evcap.recon.reconstruct import POSES_FILE, reconstruct
+    from evcap.records import Poses
 
     relight = None
     if stage == "material":
@@ -283,8 +284,12 @@ def _reconstruct(ctx: DemoContext, stage: str) -> str:
         return float("nan") if value is None else scale * value
 
     if stage == "radiance":
+        refined = ""
+        if (ctx.reconstruction / POSES_FILE).exists():
+            notes = Poses.read_file(ctx.reconstruction / POSES_FILE).notes
+            refined = f", poses refined (by {notes['refinement_median_deg']:.2f} deg, median)"
         return (
-            f"{m.gaussians:,} Gaussians, {m.iterations} steps; held-out views: object "
+            f"{m.gaussians:,} Gaussians, {m.iterations} steps{refined}; held-out views: object "
             f"{show(f.object_psnr_cc):.1f} dB (a constant color "
             f"{show(f.object_psnr_constant):.1f} dB), normals "
             f"{show(f.normal_mae_deg):.1f} deg, depth {show(f.depth_rel_err, 100):.0f} % off"

@@ -117,9 +117,9 @@ class RadianceConfig:
     # second differences along the keyframes weighted by pose_smooth_weight
     refine_poses: bool = False
     pose_keyframe_ms: float = 100.0
-    pose_from: float = 0.2
-    lr_pose_rotation: float = 1e-3
-    lr_pose_shift: float = 1e-3
+    pose_from: float = 0.3
+    lr_pose_rotation: float = 1e-4
+    lr_pose_shift: float = 1e-4
     pose_smooth_weight: float = 1.0
 
 

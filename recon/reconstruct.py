@@ -139,7 +139,7 @@ def reconstruct(
     indirect: EffectMode | None = None,
     ablate: tuple[Ablation, ...] = (),
     relight: str | Path | None = None,
-    refine_poses: RefinePoses = "off",
+    refine_poses: RefinePoses = "auto",
     write_poses: bool = False,
     overwrite: bool = False,
     resume: bool = True,

@@ -43,6 +43,8 @@ def test_demo_runs_resumes_and_writes_the_report(tmp_path):
     assert "orientations from the gyroscope" in state["done"][steps[3]]["summary"]
     rotation = re.search(r"rotation ([0-9.]+) deg", state["done"][steps[4]]["summary"])
     assert float(rotation.group(1)) < 0.5  # structure from motion's alone: 1.8 deg
+    assert "poses refined" in state["done"][steps[5]]["summary"]  # estimated: refined
+    assert (out / "reconstruction" / "poses.h5").exists()
     metrics = json.loads((out / "reconstruction" / "metrics.json").read_text())
     assert metrics["views"] == "held-out test views" and metrics["history"]
     assert metrics["pbr_render_psnr_cc"] > 15  # the pipeline works, even on estimated poses

@@ -124,3 +124,41 @@ def test_the_moved_gaussians_give_the_pose_the_gradient_a_differentiable_camera_
     torch.testing.assert_close(
         grads(lambda T: field.render(T, grid).color), moved, rtol=0.02, atol=0.02
     )
+
+
+def test_reconstruct_refines_estimated_poses_and_writes_them(tiny_scene, tmp_path):
+    """auto refines poses that `evcap poses` estimated: OUT/poses.h5 holds the refined path
+    (its source says so); stage II alone then reads it; --write-poses puts it in the session."""
+    from evcap.recon.reconstruct import POSES_FILE, reconstruct
+    from evcap.session import Session
+    from evcap.sim.scene import load_scene
+    from evcap.sim.simulate import simulate
+
+    session = tmp_path / "s.h5"
+    simulate(load_scene(tiny_scene()), session)
+    with Session.open(session) as s:
+        truth = Poses.read(s)
+    truth.replace(source="evcap poses (filter frames, pycolmap)").write(session)
+    out = tmp_path / "out"
+    settings = {"iterations": 12, "pose_from": 0.0}
+    result = reconstruct(session, out, preset="tiny", stage="radiance", radiance_settings=settings)
+    refined = Poses.read_file(out / POSES_FILE)
+    assert refined.source == "evcap reconstruct: refined (evcap poses (filter frames, pycolmap))"
+    assert refined.start == truth.start and refined.end == truth.end
+    assert 0 < refined.notes["refinement_max_deg"] < 5
+    assert np.isfinite(result.figures.object_psnr_cc)
+    material = reconstruct(
+        session, out, preset="tiny", stage="material", material_iterations=2, write_poses=True
+    )
+    assert material.material_iterations == 2
+    with Session.open(session) as s:
+        assert Poses.read(s).source == refined.source
+    off = reconstruct(
+        session,
+        tmp_path / "off",
+        preset="tiny",
+        stage="radiance",
+        radiance_settings=settings,
+        refine_poses="off",
+    )
+    assert off.iterations == 12 and not (tmp_path / "off" / POSES_FILE).exists()
