@@ -1,5 +1,7 @@
 """Pose refinement's pieces: the corrections, their gauge, and the render's gradient to a pose."""
 
+import shutil
+
 import numpy as np
 import pytest
 import torch
@@ -9,8 +11,12 @@ from evcap.recon.optics import RenderGrid
 from evcap.recon.pose_refinement import PoseCorrections, exp_so3
 from evcap.recon.radiance import RadianceField, pixel_directions
 from evcap.recon.rasterize import Camera, rasterize
+from evcap.recon.reconstruct import POSES_FILE, reconstruct
 from evcap.records import Poses
 from evcap.rotations import exp_so3 as exp_so3_numpy
+from evcap.session import Session
+from evcap.sim.scene import load_scene
+from evcap.sim.simulate import simulate
 from evcap.sim.trajectory import look_at
 
 
@@ -126,16 +132,17 @@ def test_the_moved_gaussians_give_the_pose_the_gradient_a_differentiable_camera_
     )
 
 
-def test_reconstruct_refines_estimated_poses_and_writes_them(tiny_scene, tmp_path):
+@pytest.fixture(scope="module")
+def simulated(tiny_scene, tmp_path_factory):
+    session = tmp_path_factory.mktemp("session") / "s.h5"
+    simulate(load_scene(tiny_scene()), session)
+    return session
+
+
+def test_reconstruct_refines_estimated_poses_and_writes_them(simulated, tmp_path):
     """auto refines poses that `evcap poses` estimated: OUT/poses.h5 holds the refined path
     (its source says so); stage II alone then reads it; --write-poses puts it in the session."""
-    from evcap.recon.reconstruct import POSES_FILE, reconstruct
-    from evcap.session import Session
-    from evcap.sim.scene import load_scene
-    from evcap.sim.simulate import simulate
-
-    session = tmp_path / "s.h5"
-    simulate(load_scene(tiny_scene()), session)
+    session = shutil.copy(simulated, tmp_path / "s.h5")
     with Session.open(session) as s:
         truth = Poses.read(s)
     truth.replace(source="evcap poses (filter frames, pycolmap)").write(session)
@@ -162,3 +169,30 @@ def test_reconstruct_refines_estimated_poses_and_writes_them(tiny_scene, tmp_pat
         refine_poses="off",
     )
     assert off.iterations == 12 and not (tmp_path / "off" / POSES_FILE).exists()
+
+
+def test_an_interrupted_refinement_goes_on_as_if_it_had_not_stopped(simulated, tmp_path):
+    session = simulated
+    run = {
+        "preset": "tiny",
+        "stage": "radiance",
+        "iterations": 40,
+        "radiance_settings": {"pose_from": 0.1},
+        "refine_poses": "on",
+    }
+    whole = reconstruct(session, tmp_path / "whole", **run)
+
+    def ctrl_c_at_step_25(done: int, total: int, status: str = "") -> None:
+        if done == 25:
+            raise KeyboardInterrupt
+
+    first = reconstruct(session, tmp_path / "cut", **run, progress=ctrl_c_at_step_25)
+    assert first.interrupted and first.iterations == 25
+    again = reconstruct(session, tmp_path / "cut", **run)
+    assert again.iterations == whole.iterations == 40
+    expected = Poses.read_file(tmp_path / "whole" / POSES_FILE)
+    got = Poses.read_file(tmp_path / "cut" / POSES_FILE)
+    assert expected.notes["refinement_max_deg"] > 0
+    np.testing.assert_allclose(got.T_world_cam, expected.T_world_cam, atol=1e-9)
+    with Session.open(session) as s:
+        assert Poses.read(s).source == "ground truth"  # the session's own, untouched
