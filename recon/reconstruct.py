@@ -176,7 +176,7 @@ def reconstruct(
         config = cfg.preset(preset, **overrides)
     started = time.perf_counter()
     with Session.open(session_path) as session:
-        if "radiance" in runs:
+        if "radiance" in runs and Poses.present(session):  # else a clear error comes below
             refines = _refines(refine_poses, Poses.read(session))
             config = dataclasses.replace(config, refine_poses=refines)
         session_id = resume_.session_fingerprint(session)
