@@ -6,11 +6,8 @@ and a shift of the centre (in units of the scene's extent). Between keyframes th
 are interpolated linearly, so the corrected path stays as smooth as the one it corrects. The
 gauge is fixed after every step: the first keyframe is not corrected, and the shifts keep the
 path's scale (no part of them stretches the path about its first centre), since the events
-cannot tell a larger scene seen from further away.
-
-The rasterizer differentiates the Gaussians, not the camera, so a corrected view is rendered
-with the Gaussians moved by the correction's inverse (``moved``): the identity in value,
-whose gradient reaches the correction.
+cannot tell a larger scene seen from further away. The rasterizers differentiate the camera,
+so the event loss's gradient reaches the corrections through the corrected poses.
 """
 
 from __future__ import annotations
@@ -32,35 +29,6 @@ def exp_so3(w: torch.Tensor) -> torch.Tensor:
     k = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*w.shape[:-1], 3, 3)
     eye = torch.eye(3, dtype=w.dtype, device=w.device)
     return eye + a * k + b * (k @ k)
-
-
-def near_identity_quat(R: torch.Tensor) -> torch.Tensor:
-    """[3, 3] rotation (far from a half turn) -> its quaternion (w, x, y, z), differentiable."""
-    w = (1 + R[0, 0] + R[1, 1] + R[2, 2]).clamp_min(1e-8).sqrt() / 2
-    xyz = torch.stack([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (4 * w)
-    return torch.cat([w[None], xyz])
-
-
-def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """a [4] times each of b [N, 4] (w, x, y, z): the rotation b, then a."""
-    w0, x0, y0, z0 = a.unbind(-1)
-    w1, x1, y1, z1 = b.unbind(-1)
-    return torch.stack(
-        [
-            w0 * w1 - x0 * x1 - y0 * y1 - z0 * z1,
-            w0 * x1 + x0 * w1 + y0 * z1 - z0 * y1,
-            w0 * y1 - x0 * z1 + y0 * w1 + z0 * x1,
-            w0 * z1 + x0 * y1 - y0 * x1 + z0 * w1,
-        ],
-        -1,
-    )
-
-
-def moved(T_world_cam: torch.Tensor) -> torch.Tensor:
-    """[4, 4] world-to-world: rendering Gaussians moved by it from the camera
-    ``T_world_cam.detach()`` is rendering them unmoved from ``T_world_cam``. Its value is the
-    identity; its gradient is the pose's."""
-    return T_world_cam.detach() @ torch.linalg.inv(T_world_cam)
 
 
 class PoseCorrections(torch.nn.Module):

@@ -34,12 +34,7 @@ from evcap.recon.losses import (
     quiet_variation_loss,
 )
 from evcap.recon.optics import CHANNEL_WEIGHTS, RenderGrid, SensorOptics, render_grid
-from evcap.recon.pose_refinement import (
-    PoseCorrections,
-    moved,
-    near_identity_quat,
-    quat_multiply,
-)
+from evcap.recon.pose_refinement import PoseCorrections
 from evcap.recon.rasterize import Camera, Render, rasterize
 from evcap.recon.resume import Steps, random_states, restore_random_states
 from evcap.recon.volume import SceneVolume, sample_points, scene_volume
@@ -105,31 +100,26 @@ class RadianceField(torch.nn.Module):
         """The view; with ``spread``, color has a fourth channel: sum w z^2, the composited
         second moment of the Gaussians' depths (its spread about the expected depth is
         what the depth-spread loss takes); ``hidden`` renders the background alone. A pose
-        given as a tensor that requires grad gets the render's gradient."""
+        given as a tensor (pose refinement) gets the render's gradient: every backend
+        differentiates the camera."""
         device = self.gaussians.means.device
-        g = self.gaussians
-        means, quats, seen_from = g.means, g.quats, None
-        if isinstance(T_world_cam, torch.Tensor) and T_world_cam.requires_grad:
-            M = moved(T_world_cam).to(device, torch.float32)
-            means = means @ M[:3, :3].T + M[:3, 3]
-            quats = quat_multiply(near_identity_quat(M[:3, :3]), quats)
-            corrected = torch.linalg.inv(T_world_cam).to(device, torch.float32)
-            seen_from = Camera(corrected, grid.K, grid.width, grid.height)
         if isinstance(T_world_cam, torch.Tensor):
-            T_world_cam = T_world_cam.detach().cpu().numpy()
-        viewmat = torch.as_tensor(np.linalg.inv(T_world_cam), dtype=torch.float32, device=device)
+            viewmat = torch.linalg.inv(T_world_cam).to(device, torch.float32)
+        else:
+            viewmat = torch.as_tensor(
+                np.linalg.inv(T_world_cam), dtype=torch.float32, device=device
+            )
         cam = Camera(viewmat, grid.K, grid.width, grid.height)
-        if seen_from is None:
-            seen_from = cam
-        colors = g.radiance(seen_from.center, sh_degree)
-        bg = self.background(pixel_directions(seen_from))
+        g = self.gaussians
+        colors = g.radiance(cam.center, sh_degree)
+        bg = self.background(pixel_directions(cam))
         if spread:
-            z = means @ viewmat[2, :3] + viewmat[2, 3]
+            z = g.means @ viewmat[2, :3] + viewmat[2, 3]
             colors = torch.cat([colors, (z * z)[:, None]], 1)
             bg = torch.cat([bg, bg.new_zeros(*bg.shape[:-1], 1)], -1)
         return rasterize(
-            means,
-            quats,
+            g.means,
+            g.quats,
             g.scales,
             g.opacities * 0 if hidden else g.opacities,
             colors,
