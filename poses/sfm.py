@@ -3,7 +3,7 @@
 The frames go to a COLMAP database as one camera whose intrinsics are the calibration's and
 stay fixed: SIFT features, sequential matching (each frame against the next ``OVERLAP``, and
 COLMAP's quadratic neighbours i + 2^k), loop-closure pairs, then incremental mapping; the
-largest model is kept.
+largest model is kept, with those that share a frame with it joined (poses/model_join.py).
 
 Loop closures: every ``loop_every``-th frame is a keyframe, and each keyframe is matched
 against every other keyframe farther apart than the sequential overlap. Exhaustive matching
@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from evcap.errors import InputError, PosesError
+from evcap.poses.model_join import Piece, join_pieces, piece_of
 
 OVERLAP = 10  # sequential matching: each frame against the next 10
 MAX_FEATURES = 4000  # SIFT features per frame
@@ -63,7 +64,7 @@ class Observations:
 
 @dataclass
 class SfmResult:
-    """The registered frames of the largest model, in time order."""
+    """The registered frames of the largest model (and those joined to it), in time order."""
 
     t_us: np.ndarray  # [M] int64, times of the registered frames
     T_world_cam: np.ndarray  # [M, 4, 4] float64 camera-to-world, OpenCV camera axes
@@ -71,12 +72,13 @@ class SfmResult:
     total: int  # N, frames given
     mean_reprojection_px: float  # over the model's 3D points
     points: int  # 3D points in the model
-    model_count: int  # models COLMAP made (disconnected pieces); only the largest is kept
+    model_count: int  # models COLMAP made (pieces of the path)
     seconds: float  # wall time of the whole run
     unregistered_times: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # [N-M]
     # the model's points and where the registered frames saw them, for refining the poses
     points_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # [P, 3]
     observations: Observations | None = None
+    joined: int = 0  # models joined to the largest through a frame they share
 
 
 def run_sfm(
@@ -117,72 +119,56 @@ def run_sfm(
     # COLMAP logs every frame and step at INFO, and its failures are told by PosesError
     pycolmap.logging.minloglevel = max(int(level), int(pycolmap.logging.FATAL))
     try:
-        best, names, stats, count = _best_model(
+        best, stats, count, joined = _best_model(
             pycolmap, images, model, params, workdir, loop_every, threads, report
         )
-        if best is None or best.num_reg_images() < RETRY_BELOW * n:
+        if best is None or len(best.frames) < RETRY_BELOW * n:
             # few frames registered: a scene with few features (an object against a plain
             # background) starts and grows a model only with laxer thresholds
             lax = _best_model(
                 pycolmap, images, model, params, workdir, loop_every, threads, report, relaxed=True
             )
-            if lax[0] is not None and (
-                best is None or lax[0].num_reg_images() > best.num_reg_images()
-            ):
-                best, names, stats, count = lax
+            if lax[0] is not None and (best is None or len(lax[0].frames) > len(best.frames)):
+                best, stats, count, joined = lax
     finally:
         pycolmap.logging.minloglevel = level
 
-    registered = best.num_reg_images() if best is not None else 0
+    registered = len(best.frames) if best is not None else 0
     if registered < MIN_FRAMES:
         raise PosesError(_failure(n, registered, stats))
-    index = {name: i for i, name in enumerate(names)}
-    frames, poses = [], []
-    for image in best.images.values():
-        if not image.has_pose:
-            continue
-        T = np.eye(4)
-        T[:3] = image.cam_from_world().matrix()
-        frames.append(index[image.name])
-        poses.append(np.linalg.inv(T))
-    order = np.argsort(frames)
-    frames = np.asarray(frames)[order]
-    missing = np.setdiff1d(np.arange(n), frames)
-    points_xyz, observations = _observations(best, names, frames)
+    frames = best.frames
     report(n, n, f"mapping: {len(frames)} of {n} frames registered")
     return SfmResult(
         t_us=times_us[frames],
-        T_world_cam=np.stack(poses)[order],
+        T_world_cam=best.T_world_cam,
         registered=len(frames),
         total=n,
-        mean_reprojection_px=float(best.compute_mean_reprojection_error()),
-        points=int(best.num_points3D()),
+        mean_reprojection_px=reprojection_px(best, K, dist),
+        points=len(best.xyz),
         model_count=count,
         seconds=time.perf_counter() - started,
-        unregistered_times=times_us[missing],
-        points_xyz=points_xyz,
-        observations=observations,
+        unregistered_times=times_us[np.setdiff1d(np.arange(n), frames)],
+        points_xyz=best.xyz,
+        observations=Observations(np.searchsorted(frames, best.frame), best.point, best.xy),
+        joined=joined,
     )
 
 
-def _observations(model, names: list[str], frames: np.ndarray) -> tuple[np.ndarray, Observations]:
-    """The model's 3D points and their sightings, frames numbered as in ``frames`` (the
-    registered frames' indices into ``names``, in time order)."""
-    row = {int(f): i for i, f in enumerate(frames)}
-    index = {name: i for i, name in enumerate(names)}
-    xyz, frame, point, xy = [], [], [], []
-    for p in model.points3D.values():
-        for e in p.track.elements:
-            image = model.images[e.image_id]
-            frame.append(row[index[image.name]])
-            point.append(len(xyz))
-            xy.append(image.points2D[e.point2D_idx].xy)
-        xyz.append(p.xyz)
-    return np.asarray(xyz, np.float64).reshape(-1, 3), Observations(
-        np.asarray(frame, np.int64),
-        np.asarray(point, np.int64),
-        np.asarray(xy, np.float64).reshape(-1, 2) - 0.5,  # COLMAP's pixel centres are at 0.5
-    )
+def reprojection_px(piece: Piece, K: np.ndarray, dist: np.ndarray) -> float:
+    """Mean distance (pixels) between where the points were seen and where they project."""
+    import cv2
+
+    d = np.asarray(dist, np.float64).ravel()
+    errors = []
+    for f, T in zip(piece.frames, piece.T_world_cam, strict=True):
+        seen = piece.frame == f
+        if not seen.any():
+            continue
+        T_cw = np.linalg.inv(T)
+        rvec = cv2.Rodrigues(T_cw[:3, :3])[0]
+        xy = cv2.projectPoints(piece.xyz[piece.point[seen]], rvec, T_cw[:3, 3], K, d)[0]
+        errors.append(np.linalg.norm(xy.reshape(-1, 2) - piece.xy[seen], axis=1))
+    return float(np.concatenate(errors).mean()) if errors else float("nan")
 
 
 def colmap_camera(K: np.ndarray, dist: np.ndarray) -> tuple[str, list[float]]:
@@ -255,16 +241,20 @@ def _cores() -> int:
 def _best_model(
     pycolmap, images, model, params, workdir, loop_every, threads, report, relaxed=False
 ):
-    """(the model with the most frames or None, the image names, the database's statistics,
-    how many models)."""
+    """(the largest model with those joined to it (poses/model_join.py) or None, the
+    database's statistics, how many models, how many were joined)."""
     with tempfile.TemporaryDirectory(prefix="evcap-sfm-") as tmp:
         work = Path(workdir) if workdir is not None else Path(tmp)
         recs, names = _colmap(
             pycolmap, images, model, params, work, loop_every, threads, report, relaxed
         )
         stats = _match_stats(pycolmap, work / "database.db", len(images))
-        best = max(recs.values(), key=lambda r: r.num_reg_images(), default=None)
-    return best, names, stats, len(recs)
+    index = {name: i for i, name in enumerate(names)}
+    pieces = [piece_of(r, index) for r in recs.values() if r.num_reg_images()]
+    if not pieces:
+        return None, stats, len(recs), 0
+    best, joined = join_pieces(pieces)
+    return best, stats, len(recs), joined
 
 
 def _colmap(pycolmap, images, model, params, work, loop_every, threads, report, relaxed=False):
