@@ -1,11 +1,12 @@
 """Poses from the events against the truth: `evcap poses` on simulated sessions with a known
 trajectory (an orbit, and a hand-held path), the estimate aligned to the truth by a similarity;
-then the reconstruction (stage I, the demo's settings) of the single-object scene on the true
-poses, on the estimated ones, and on those refined by the reconstruction, whose errors against
-the truth are measured too. Prints the figures and writes results/poses.json.
+then the reconstruction (stage I, the demo's settings) of the single-object scene and of the
+demo's capture on the true poses, on the estimated ones, and on those refined by the
+reconstruction, whose errors against the truth are measured too. Prints the figures and writes
+results/poses.json (results/poses_SCENES.json for other scenes than the default).
 
-    python bench/poses.py [--scenes single_object charuco_board demo_orbit] [--frames filter]
-                          [--no-gyro]
+    python bench/poses.py [--scenes single_object charuco_board demo] [--frames filter]
+                          [--no-gyro] [--seeds 0 1 2]
 """
 
 from __future__ import annotations
@@ -22,7 +23,26 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import RESULTS, report, session_of  # noqa: E402
 
-RECONSTRUCTED = ("single_object", "demo_orbit")  # scenes whose held-out views are scored
+FIXTURES = Path(__file__).resolve().parents[1] / "evcap" / "demo_data"
+RECONSTRUCTED = ("single_object", "demo")  # scenes whose held-out views are scored
+
+
+def demo_session(work: Path) -> Path:
+    """The demo's capture as `evcap demo` makes it (both bundled recordings replayed through
+    the driver, the calibration recording calibrating the scene's), with the simulator's truth
+    and, as /poses, its true path."""
+    from evcap._progress import progress_bar
+    from evcap.demo import SCENE, DemoContext, demo_steps
+    from evcap.sim.truth import copy_truth
+
+    out = work / "demo"
+    out.mkdir(parents=True)
+    quiet = lambda what: progress_bar(what, enabled=False)  # noqa: E731
+    ctx = DemoContext(out, FIXTURES, "tiny", quiet, say=lambda line: None)
+    for step in demo_steps(ctx)[:3]:
+        step.run()
+    copy_truth(FIXTURES / SCENE / "truth.h5", ctx.scene, poses=True)
+    return ctx.scene
 
 
 def poses_against_truth(path: Path, work: Path, kind: str, gyro: bool) -> tuple[dict, Path]:
@@ -75,67 +95,100 @@ def poses_against_truth(path: Path, work: Path, kind: str, gyro: bool) -> tuple[
     return figures, copy
 
 
-def reconstruction_difference(true_session: Path, estimated: Path, work: Path) -> dict:
+def reconstruction_difference(
+    true_session: Path, estimated: Path, work: Path, seeds: list[int]
+) -> dict:
     """Stage I (the demo's: 1,000 steps at half scale) on the true poses, on the aligned
-    estimated ones, and on those refined by stage I itself (`--refine-poses on`): the held-out
-    views' object figures, the whole image's, and the refined poses' errors against the truth."""
+    estimated ones, and on those refined by stage I itself (`--refine-poses on`), once per
+    seed: the held-out views' object figures, the whole image's, and the refined poses'
+    errors against the truth (the first seed's keys unsuffixed, the others' with _seedN;
+    the object figure's mean over the seeds as _mean)."""
     from evcap.demo import STAGE_I
     from evcap.recon.reconstruct import POSES_FILE, reconstruct
     from evcap.records import GroundTruth, Poses
     from evcap.session import Session
     from evcap.trajectory_alignment import pose_errors
 
-    out = {}
-    runs = (("true", true_session, "off"), ("estimated", estimated, "off"))
-    for name, session, refine in (*runs, ("refined", estimated, "on")):
-        t0 = time.perf_counter()
-        f = reconstruct(
-            session,
-            work / f"recon_{name}",
-            preset="tiny",
-            stage="radiance",
-            radiance_settings=STAGE_I["tiny"],
-            refine_poses=refine,
-        ).figures
-        out[f"recon_{name}_poses_seconds"] = time.perf_counter() - t0
-        for key in ("object_psnr_cc", "object_psnr_constant", "normal_mae_deg", "render_psnr_cc"):
-            out[f"recon_{name}_poses_{key}"] = getattr(f, key)
-    for name in ("estimated", "refined"):
-        out[f"recon_object_psnr_cc_loss_db_{name}"] = (
-            out["recon_true_poses_object_psnr_cc"] - out[f"recon_{name}_poses_object_psnr_cc"]
-        )
     with Session.open(true_session) as s:
         truth = GroundTruth.read(s).poses()
     with Session.open(estimated) as s:
         given = Poses.read(s)
-    refined = Poses.read_file(work / "recon_refined" / POSES_FILE)
-    for name, poses in (("estimated", given), ("refined", refined)):
-        inside = (poses.t >= truth.start) & (poses.t <= truth.end)
-        T_true = truth.at(poses.t[inside])
-        for by in ("centres", "poses"):
-            e = pose_errors(poses.T_world_cam[inside], T_true, by=by)
-            for k in ("rotation_median_deg", "translation_median_pct"):
-                out[f"{name}_{k}_aligned_by_{by}"] = e[k]
+    out, names = {}, ("true", "estimated", "refined")
+    for seed in seeds:
+        tag = "" if seed == seeds[0] else f"_seed{seed}"
+        runs = (("true", true_session, "off"), ("estimated", estimated, "off"))
+        for name, session, refine in (*runs, ("refined", estimated, "on")):
+            t0 = time.perf_counter()
+            f = reconstruct(
+                session,
+                work / f"recon_{name}{tag}",
+                preset="tiny",
+                stage="radiance",
+                radiance_settings=STAGE_I["tiny"],
+                refine_poses=refine,
+                seed=seed,
+            ).figures
+            out[f"recon_{name}_poses_seconds{tag}"] = time.perf_counter() - t0
+            for key in (
+                "object_psnr_cc",
+                "object_psnr_constant",
+                "normal_mae_deg",
+                "render_psnr_cc",
+            ):
+                out[f"recon_{name}_poses_{key}{tag}"] = getattr(f, key)
+        for name in names[1:]:
+            out[f"recon_object_psnr_cc_loss_db_{name}{tag}"] = (
+                out[f"recon_true_poses_object_psnr_cc{tag}"]
+                - out[f"recon_{name}_poses_object_psnr_cc{tag}"]
+            )
+        refined = Poses.read_file(work / f"recon_refined{tag}" / POSES_FILE)
+        for name, poses in (("estimated", given), ("refined", refined)):
+            if name == "estimated" and tag:
+                continue  # the same poses for every seed
+            inside = (poses.t >= truth.start) & (poses.t <= truth.end)
+            T_true = truth.at(poses.t[inside])
+            for by in ("centres", "poses"):
+                e = pose_errors(poses.T_world_cam[inside], T_true, by=by)
+                for k in ("rotation_median_deg", "translation_median_pct"):
+                    out[f"{name}_{k}_aligned_by_{by}{tag}"] = e[k]
+    for name in names:
+        key = f"recon_{name}_poses_object_psnr_cc"
+        runs = [out[key + ("" if s == seeds[0] else f"_seed{s}")] for s in seeds]
+        out[f"{key}_mean"] = float(np.mean(runs))
+    for name in names[1:]:
+        out[f"recon_object_psnr_cc_loss_db_{name}_mean"] = (
+            out["recon_true_poses_object_psnr_cc_mean"]
+            - out[f"recon_{name}_poses_object_psnr_cc_mean"]
+        )
     return out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenes", nargs="+", default=["single_object", "charuco_board"])
+    default = ["single_object", "charuco_board"]
+    ap.add_argument("--scenes", nargs="+", default=default)
     ap.add_argument("--frames", default="filter", choices=["filter", "e2vid", "firenet"])
     ap.add_argument("--no-gyro", action="store_true", help="structure from motion's orientations")
+    ap.add_argument(
+        "--seeds",
+        nargs="+",
+        type=int,
+        default=[0],
+        help="the reconstructions' seeds (one run each)",
+    )
     args = ap.parse_args()
     figures: dict = {"frames": args.frames, "gyro": not args.no_gyro}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         for scene in args.scenes:
-            path = session_of(scene)
+            path = demo_session(work) if scene == "demo" else session_of(scene)
             part, copy = poses_against_truth(path, work, args.frames, not args.no_gyro)
             figures.update(part)
             if scene in RECONSTRUCTED:
-                part = reconstruction_difference(path, copy, work / scene)
+                part = reconstruction_difference(path, copy, work / scene, args.seeds)
                 figures.update({f"{scene}_{k}": v for k, v in part.items()})
-    report("poses" if not args.no_gyro else "poses_no_gyro", figures)
+    name = "poses" + ("" if args.scenes == default else "_" + "_".join(args.scenes))
+    report(name + ("_no_gyro" if args.no_gyro else ""), figures)
 
 
 if __name__ == "__main__":
