@@ -38,6 +38,21 @@ def frame_rate(events: Events) -> float:
     return float(np.clip(max(rate, MIN_FRAMES / span_s), MIN_RATE_HZ, MAX_RATE_HZ))
 
 
+def memory_us(kind: FrameKind) -> int:
+    """How long a frame of this kind looks back: the first frame is made this long after the
+    first event, when it shows what a later one would (the filter's time constant, the time
+    surface's decay; a network's frame only the events since the previous one)."""
+    match kind:
+        case "filter":
+            return int(round(1e6 / (2 * np.pi * FILTER_CUTOFF_HZ)))
+        case "timesurface":
+            return TIME_SURFACE_TAU_US
+        case "e2vid" | "firenet":
+            return 0
+        case _:
+            assert_never(kind)
+
+
 def demosaic(mosaic: np.ndarray, color_filter: str) -> np.ndarray:
     """[H, W, 3] RGB of a [H, W] mosaic: each channel interpolated from its own pixels (a
     normalised 3 x 3 convolution); MONO is copied to the three channels."""

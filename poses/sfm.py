@@ -3,7 +3,8 @@
 The frames go to a COLMAP database as one camera whose intrinsics are the calibration's and
 stay fixed: SIFT features, sequential matching (each frame against the next ``OVERLAP``, and
 COLMAP's quadratic neighbours i + 2^k), loop-closure pairs, then incremental mapping; the
-largest model is kept, with those that share a frame with it joined (poses/model_join.py).
+largest model is kept, with those that share a frame with it joined (poses/model_join.py), and
+the frames it left out are registered against its points where they can be (poses/resection.py).
 
 Loop closures: every ``loop_every``-th frame is a keyframe, and each keyframe is matched
 against every other keyframe farther apart than the sequential overlap. Exhaustive matching
@@ -30,6 +31,7 @@ import numpy as np
 
 from evcap.errors import InputError, PosesError
 from evcap.poses.model_join import Piece, join_pieces, piece_of
+from evcap.poses.resection import register_rest
 
 OVERLAP = 10  # sequential matching: each frame against the next 10
 MAX_FEATURES = 4000  # SIFT features per frame
@@ -39,8 +41,9 @@ INIT_MIN_INLIERS = 100  # to start a model; COLMAP halves it twice before giving
 FEW_FEATURES = 100  # fewer per frame on average: name too little texture as the cause
 MIN_FRAMES = 3  # fewer registered: no poses worth returning
 # when fewer than this share of the frames register, mapping is tried again with laxer
-# thresholds, and the model with more frames kept: on the demo's orbit, 30 -> 48 of 59 frames
-RETRY_BELOW = 0.8
+# thresholds, and the model with more frames kept: on the demo's orbit, 30 -> 48 of 59 frames;
+# at 1.0 any frame left out is a reason to try again
+RETRY_BELOW = 1.0
 RELAXED_INIT_TRI_ANGLE = 4.0  # degrees (COLMAP's default 16)
 RELAXED_ABS_POSE_INLIERS = 15  # 2D-3D matches to register a frame (COLMAP's default 30)
 # degrees between the rays of a point to triangulate and keep it (COLMAP's default 1.5): the
@@ -79,6 +82,7 @@ class SfmResult:
     points_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # [P, 3]
     observations: Observations | None = None
     joined: int = 0  # models joined to the largest through a frame they share
+    resected: int = 0  # frames the mapping left out, registered afterwards (poses/resection.py)
 
 
 def run_sfm(
@@ -107,7 +111,8 @@ def run_sfm(
 
     started = time.perf_counter()
     images, times_us = _check_frames(images, times_us)
-    model, params = colmap_camera(K, dist)
+    colmap_camera(K, dist)  # K and dist checked before COLMAP runs
+    K, dist = np.asarray(K, np.float64), np.asarray(dist, np.float64).ravel()
     if loop_every < 1:
         raise InputError(f"loop_every must be at least 1, got {loop_every}")
     if threads < 0:
@@ -119,17 +124,17 @@ def run_sfm(
     # COLMAP logs every frame and step at INFO, and its failures are told by PosesError
     pycolmap.logging.minloglevel = max(int(level), int(pycolmap.logging.FATAL))
     try:
-        best, stats, count, joined = _best_model(
-            pycolmap, images, model, params, workdir, loop_every, threads, report
+        best, stats, count, joined, resected = _best_model(
+            pycolmap, images, K, dist, workdir, loop_every, threads, report
         )
         if best is None or len(best.frames) < RETRY_BELOW * n:
             # few frames registered: a scene with few features (an object against a plain
             # background) starts and grows a model only with laxer thresholds
             lax = _best_model(
-                pycolmap, images, model, params, workdir, loop_every, threads, report, relaxed=True
+                pycolmap, images, K, dist, workdir, loop_every, threads, report, relaxed=True
             )
             if lax[0] is not None and (best is None or len(lax[0].frames) > len(best.frames)):
-                best, stats, count, joined = lax
+                best, stats, count, joined, resected = lax
     finally:
         pycolmap.logging.minloglevel = level
 
@@ -151,6 +156,7 @@ def run_sfm(
         points_xyz=best.xyz,
         observations=Observations(np.searchsorted(frames, best.frame), best.point, best.xy),
         joined=joined,
+        resected=resected,
     )
 
 
@@ -238,23 +244,34 @@ def _cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _best_model(
-    pycolmap, images, model, params, workdir, loop_every, threads, report, relaxed=False
-):
-    """(the largest model with those joined to it (poses/model_join.py) or None, the
-    database's statistics, how many models, how many were joined)."""
+def _best_model(pycolmap, images, K, dist, workdir, loop_every, threads, report, relaxed=False):
+    """(the largest model with those joined to it (poses/model_join.py) and the frames it
+    left out registered where they can be (poses/resection.py), or None; the database's
+    statistics, how many models, how many were joined, how many resected)."""
     with tempfile.TemporaryDirectory(prefix="evcap-sfm-") as tmp:
         work = Path(workdir) if workdir is not None else Path(tmp)
+        model, params = colmap_camera(K, dist)
         recs, names = _colmap(
             pycolmap, images, model, params, work, loop_every, threads, report, relaxed
         )
         stats = _match_stats(pycolmap, work / "database.db", len(images))
-    index = {name: i for i, name in enumerate(names)}
-    pieces = [piece_of(r, index) for r in recs.values() if r.num_reg_images()]
-    if not pieces:
-        return None, stats, len(recs), 0
-    best, joined = join_pieces(pieces)
-    return best, stats, len(recs), joined
+        index = {name: i for i, name in enumerate(names)}
+        pieces = [piece_of(r, index) for r in recs.values() if r.num_reg_images()]
+        if not pieces:
+            return None, stats, len(recs), 0, 0
+        best, joined = join_pieces(pieces)
+        with pycolmap.Database.open(work / "database.db") as db:
+            ids = {im.name: im.image_id for im in db.read_all_images()}
+            image_id = [ids[name] for name in names]
+
+            def keypoints(f: int) -> np.ndarray:
+                return db.read_keypoints(image_id[f])[:, :2] - 0.5  # COLMAP's centres at 0.5
+
+            def matches(f: int, g: int) -> np.ndarray:
+                return db.read_two_view_geometry(image_id[f], image_id[g]).inlier_matches
+
+            best, resected = register_rest(best, len(images), keypoints, matches, K, dist)
+    return best, stats, len(recs), joined, resected
 
 
 def _colmap(pycolmap, images, model, params, work, loop_every, threads, report, relaxed=False):
