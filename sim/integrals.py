@@ -86,12 +86,16 @@ def specular_environment(
     else:
         tri, w, vframes, vopen, rings, sectors = sky_open
         shadows = True
+    # the grid's points on the unit disc, the same for every pixel (concentric rings of equal area)
+    rad = np.sqrt((np.arange(side) + 0.5) / side)[:, None]
+    phi = 2 * np.pi * (np.arange(side) + 0.5) / side
+    disc = np.stack([rad * np.cos(phi), rad * np.sin(phi)], -1).reshape(-1, 2)
     _specular(
-        np.ascontiguousarray(table, np.float64),
+        np.ascontiguousarray(table, np.float32),  # half the memory its reads wait on
         np.ascontiguousarray(f, np.float64),
         np.ascontiguousarray(view, np.float64),
         np.ascontiguousarray(alpha, np.float64),
-        side,
+        disc,
         shadows,
         np.ascontiguousarray(tri, np.int64),
         np.ascontiguousarray(w, np.float64),
@@ -107,7 +111,7 @@ def specular_environment(
 
 @numba.njit(cache=True, parallel=True)
 def _specular(
-    table, f, view, alpha, side, shadows, tri, w, vframes, vopen, rings, sectors, f0, out
+    table, f, view, alpha, disc, shadows, tri, w, vframes, vopen, rings, sectors, f0, out
 ):  # pragma: no cover - compiled
     h, width = table.shape[0], table.shape[1]
     for p in numba.prange(len(f)):
@@ -129,63 +133,59 @@ def _specular(
             ax, ay = 1.0, 0.0
         bx, by, bz = -ez * ay, ez * ax, ex * ay - ey * ax  # (e x a), a = (ax, ay, 0)
         s_mix = 0.5 * (1 + ez)
-        for i in range(side):
-            rad = np.sqrt((i + 0.5) / side)
-            for j in range(side):
-                phi = 2 * np.pi * (j + 0.5) / side
-                t1 = rad * np.cos(phi)
-                t2 = rad * np.sin(phi)
-                t2 = (1 - s_mix) * np.sqrt(max(1 - t1 * t1, 0.0)) + s_mix * t2
-                t3 = np.sqrt(max(1 - t1 * t1 - t2 * t2, 0.0))
-                # a visible normal of the hemisphere, stretched back: the half vector (local)
-                lx = a * (t1 * ax + t2 * bx + t3 * ex)
-                ly = a * (t1 * ay + t2 * by + t3 * ey)
-                lz = max(t2 * bz + t3 * ez, 0.0)
-                norm = np.sqrt(lx * lx + ly * ly + lz * lz)
-                if norm == 0:
-                    continue
-                lx, ly, lz = lx / norm, ly / norm, lz / norm
-                hx = lx * f[p, 0, 0] + ly * f[p, 1, 0] + lz * f[p, 2, 0]
-                hy = lx * f[p, 0, 1] + ly * f[p, 1, 1] + lz * f[p, 2, 1]
-                hz = lx * f[p, 0, 2] + ly * f[p, 1, 2] + lz * f[p, 2, 2]
-                vdh = vx * hx + vy * hy + vz * hz
-                if vdh <= 0:
-                    continue
-                dx, dy, dz = 2 * vdh * hx - vx, 2 * vdh * hy - vy, 2 * vdh * hz - vz
-                ndl = nx * dx + ny * dy + nz * dz
-                if ndl <= 0:
-                    continue
-                ndl = min(ndl, 1.0)
-                # drawn in proportion to D G1(v) (v.h) / (n.v): what is left of f (n.l) / pdf
-                gl = 2 * ndl / (ndl + np.sqrt(k + (1 - k) * ndl * ndl))
-                fresnel = f0 + (1 - f0) * (1 - min(vdh, 1.0)) ** 5
-                weight = fresnel * gl
-                if shadows:
-                    seen = 0.0
-                    for c in range(3):
-                        vert = tri[p, c]
-                        qx = vframes[vert, 0, 0] * dx + vframes[vert, 0, 1] * dy
-                        qx += vframes[vert, 0, 2] * dz
-                        qy = vframes[vert, 1, 0] * dx + vframes[vert, 1, 1] * dy
-                        qy += vframes[vert, 1, 2] * dz
-                        qz = vframes[vert, 2, 0] * dx + vframes[vert, 2, 1] * dy
-                        qz += vframes[vert, 2, 2] * dz
-                        if qz > 0 and vopen[vert, cell_of(qx, qy, qz, rings, sectors)]:
-                            seen += w[p, c]
-                    weight *= seen
-                    if weight == 0:
-                        continue
-                # the light in direction d: bilinear in the latitude-longitude table
-                x = (np.arctan2(dy, dx) / (2 * np.pi) + 0.5) * width - 0.5
-                y = (0.5 - np.arcsin(min(max(dz, -1.0), 1.0)) / np.pi) * h - 0.5
-                y = min(max(y, 0.0), h - 1.0)
-                x0, y0 = int(np.floor(x)), int(np.floor(y))
-                fx, fy = x - x0, y - y0
-                y1 = min(y0 + 1, h - 1)
-                x1 = (x0 + 1) % width
-                x0 = x0 % width
+        for i in range(len(disc)):
+            t1 = disc[i, 0]
+            t2 = (1 - s_mix) * np.sqrt(max(1 - t1 * t1, 0.0)) + s_mix * disc[i, 1]
+            t3 = np.sqrt(max(1 - t1 * t1 - t2 * t2, 0.0))
+            # a visible normal of the hemisphere, stretched back: the half vector (local)
+            lx = a * (t1 * ax + t2 * bx + t3 * ex)
+            ly = a * (t1 * ay + t2 * by + t3 * ey)
+            lz = max(t2 * bz + t3 * ez, 0.0)
+            norm = np.sqrt(lx * lx + ly * ly + lz * lz)
+            if norm == 0:
+                continue
+            lx, ly, lz = lx / norm, ly / norm, lz / norm
+            hx = lx * f[p, 0, 0] + ly * f[p, 1, 0] + lz * f[p, 2, 0]
+            hy = lx * f[p, 0, 1] + ly * f[p, 1, 1] + lz * f[p, 2, 1]
+            hz = lx * f[p, 0, 2] + ly * f[p, 1, 2] + lz * f[p, 2, 2]
+            vdh = vx * hx + vy * hy + vz * hz
+            if vdh <= 0:
+                continue
+            dx, dy, dz = 2 * vdh * hx - vx, 2 * vdh * hy - vy, 2 * vdh * hz - vz
+            ndl = nx * dx + ny * dy + nz * dz
+            if ndl <= 0:
+                continue
+            ndl = min(ndl, 1.0)
+            # drawn in proportion to D G1(v) (v.h) / (n.v): what is left of f (n.l) / pdf
+            gl = 2 * ndl / (ndl + np.sqrt(k + (1 - k) * ndl * ndl))
+            fresnel = f0 + (1 - f0) * (1 - min(vdh, 1.0)) ** 5
+            weight = fresnel * gl
+            if shadows:
+                seen = 0.0
                 for c in range(3):
-                    light = (table[y0, x0, c] * (1 - fx) + table[y0, x1, c] * fx) * (1 - fy) + (
-                        table[y1, x0, c] * (1 - fx) + table[y1, x1, c] * fx
-                    ) * fy
-                    out[p, c] += weight * light / (side * side)
+                    vert = tri[p, c]
+                    qx = vframes[vert, 0, 0] * dx + vframes[vert, 0, 1] * dy
+                    qx += vframes[vert, 0, 2] * dz
+                    qy = vframes[vert, 1, 0] * dx + vframes[vert, 1, 1] * dy
+                    qy += vframes[vert, 1, 2] * dz
+                    qz = vframes[vert, 2, 0] * dx + vframes[vert, 2, 1] * dy
+                    qz += vframes[vert, 2, 2] * dz
+                    if qz > 0 and vopen[vert, cell_of(qx, qy, qz, rings, sectors)]:
+                        seen += w[p, c]
+                weight *= seen
+                if weight == 0:
+                    continue
+            # the light in direction d: bilinear in the latitude-longitude table
+            x = (np.arctan2(dy, dx) / (2 * np.pi) + 0.5) * width - 0.5
+            y = (0.5 - np.arcsin(min(max(dz, -1.0), 1.0)) / np.pi) * h - 0.5
+            y = min(max(y, 0.0), h - 1.0)
+            x0, y0 = int(np.floor(x)), int(np.floor(y))
+            fx, fy = x - x0, y - y0
+            y1 = min(y0 + 1, h - 1)
+            x1 = (x0 + 1) % width
+            x0 = x0 % width
+            for c in range(3):
+                light = (table[y0, x0, c] * (1 - fx) + table[y0, x1, c] * fx) * (1 - fy) + (
+                    table[y1, x0, c] * (1 - fx) + table[y1, x1, c] * fx
+                ) * fy
+                out[p, c] += weight * light / len(disc)
