@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from evcap.errors import InputError
-from evcap.poses.frames import KINDS, FrameKind, event_frames, frame_rate, memory_us
+from evcap.poses.frames import FrameKind, check_kind, event_frames, frame_rate, memory_us
 from evcap.poses.gravity import Gravity, gravity_up, level, level_rotation
 from evcap.poses.gyro import GyroFit, fit_gyro
 from evcap.poses.refine import Refined, refine_positions
@@ -141,8 +141,7 @@ def estimate_poses(
     rate = frame_rate(events) if rate_hz is None else float(rate_hz)
     if not 0 < rate <= 1000:
         raise InputError(f"--rate must be in (0, 1000] Hz, got {rate_hz}")
-    if kind not in KINDS:
-        raise InputError(f"unknown frame kind {kind!r}; known: {', '.join(KINDS)}")
+    check_kind(kind)
     with_aps = False
     if kind == "filter" and len(frames):
         usable, why = aps_frames_usable(frames, imu)

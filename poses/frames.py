@@ -38,6 +38,12 @@ def frame_rate(events: Events) -> float:
     return float(np.clip(max(rate, MIN_FRAMES / span_s), MIN_RATE_HZ, MAX_RATE_HZ))
 
 
+def check_kind(kind: str) -> None:
+    """Refuse a frame kind that is not one of KINDS, naming the known ones."""
+    if kind not in KINDS:
+        raise InputError(f"unknown frame kind {kind!r}; known: {', '.join(KINDS)}")
+
+
 def memory_us(kind: FrameKind) -> int:
     """How long a frame of this kind looks back: the first frame is made this long after the
     first event, when it shows what a later one would (the filter's time constant, the time
@@ -93,8 +99,7 @@ def event_frames(
 ) -> np.ndarray:
     """[K, H, W] uint8 gray frames at ``times_us`` from ``events`` (and for the filter, the
     recording's ``aps`` frames when it has them: the complementary filter)."""
-    if kind not in KINDS:
-        raise InputError(f"unknown frame kind {kind!r}; known: {', '.join(KINDS)}")
+    check_kind(kind)
     match kind:
         case "filter":
             if weights is not None:

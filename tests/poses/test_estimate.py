@@ -57,6 +57,11 @@ def test_bad_rate_is_refused(board_session):
         estimate_poses(board_session, rate_hz=-3)
 
 
+def test_an_unknown_frame_kind_is_refused(board_session):
+    with pytest.raises(InputError, match="unknown frame kind 'sift'; known: filter"):
+        estimate_poses(board_session, kind="sift")
+
+
 def _frames_and_imu(aps_hz: float, turn_deg_per_s: float, imu: bool = True):
     from evcap.streams import Frames, ImuSamples
 
