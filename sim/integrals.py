@@ -22,8 +22,7 @@ import numba
 import numpy as np
 
 from evcap.sim.lighting import F0, tangents
-
-SPECULAR_SIDE = 12  # GGX samples per pixel: a 12 x 12 grid
+from evcap.sim.scene import SPECULAR_SIDE
 
 
 def frames(normals: np.ndarray) -> np.ndarray:

@@ -322,7 +322,9 @@ class Renderer:
             sky_open = None
             if shadows:
                 sky_open = (tri, w, self.vertex_frames, self.vertex_open, *self.cells)
-            color += integrals.specular_environment(self.sky_table, n, view, r, sky_open=sky_open)
+            color += integrals.specular_environment(
+                self.sky_table, n, view, r, self.scene.lighting.specular_side, sky_open
+            )
             for direction, irr, distance in self._light_dirs(x):
                 spec = ggx_specular(n, view, direction, r)
                 if shadows:

@@ -35,6 +35,9 @@ class SceneObject:
     params: dict  # the kind's parameters (center, radius, size, path, ...)
 
 
+SPECULAR_SIDE = 12  # GGX samples per pixel of the specular light: a 12 x 12 grid
+
+
 @dataclass(frozen=True)
 class Lighting:
     environment: str = "sky"  # "sky", or a path to an equirectangular image (.hdr/.exr/.png)
@@ -45,6 +48,9 @@ class Lighting:
     shadows: bool = False  # visibility of the environment and the lights
     indirect: bool = False  # one bounce of diffuse light between surfaces (color bleeding)
     samples: int = 256  # directions for the baked diffuse light (shadows, indirect)
+    # GGX samples of the specular light per pixel: a side x side grid (a scene whose shading
+    # nobody grades, such as a calibration board's, can take fewer: a render costs about this)
+    specular_side: int = SPECULAR_SIDE
 
 
 @dataclass(frozen=True)
@@ -389,6 +395,9 @@ def load_scene(path: str | os.PathLike) -> Scene:
         shadows=light.get("shadows", bool, False),
         indirect=light.get("indirect", bool, False),
         samples=_positive(light.where, "samples", light.get("samples", int, 256)),
+        specular_side=_positive(
+            light.where, "specular_side", light.get("specular_side", int, SPECULAR_SIDE)
+        ),
     )
     light.done()
 

@@ -146,3 +146,28 @@ def test_visibility_and_indirect_maps(tiny_scene):
     unbounced, T = _floor_and_post(tiny_scene, shadows=True, indirect=False)
     out = unbounced.render_full(T)
     assert (out["indirect"] == 0).all() and out["visibility"][out["depth"] > 0].min() < 0.6
+
+
+GRADED_SKY = (
+    'environment = "sky"\nsky = { zenith = [0.3, 0.45, 0.9], horizon = [0.9, 0.88, 0.8], '
+    "ground = [0.25, 0.22, 0.2] }"
+)
+
+
+def test_fewer_specular_samples_stay_close_to_the_full_grid(tiny_scene):
+    """``specular_side`` reaches the renderer: a 3 x 3 grid of GGX samples differs from the
+    default 12 x 12 on a shiny sphere under a graded sky, by far less than the shading."""
+    shiny = (
+        '[[objects]]\ntype = "sphere"\nradius = 0.6\nmaterial = "shiny"\n'
+        "[materials.shiny]\nbase_color = [0.2, 0.2, 0.2]\nroughness = 0.3"
+    )
+    static = 'kind = "static"\nposition = [2.0, 0.0, 0.0]\nlook_at = [0, 0, 0]'
+    renders = []
+    for side in ("", "\nspecular_side = 3"):
+        scene = load_scene(tiny_scene(objects=shiny, trajectory=static, lighting=GRADED_SKY + side))
+        pose = Trajectory(scene.trajectory).pose(0.0)
+        renders.append(Renderer(scene).render_full(pose))
+    full, few = renders
+    on = full["depth"] > 0
+    change = np.abs(few["radiance"] - full["radiance"])[on]
+    assert 0 < change.max() < 0.05 * full["radiance"][on].max()

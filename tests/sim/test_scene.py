@@ -55,6 +55,7 @@ EFFECT = "[sensor.effects]\n{}"
         ({"objects": OBJ.format("radiu = 0.5")}, "unknown key.*radiu"),
         ({"objects": OBJ.format("segments = 0")}, "segments must be positive"),
         ({"lighting": "samples = 0"}, "samples must be positive"),
+        ({"lighting": "specular_side = 0"}, "specular_side must be positive"),
         ({"effects": EFFECT.format("dropped = { probability = 2.0 }")}, "probability must be"),
         ({"effects": EFFECT.format("threshold_spread = { sigma = -1.0 }")}, "sigma must be 0"),
         ({"scene_extra": "max_step_px = 0.0"}, "max_step_px must be positive"),
