@@ -408,6 +408,37 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_batch(args: argparse.Namespace) -> int:
+    from evcap._progress import progress_bar
+    from evcap.batch.manifest import read_manifest
+    from evcap.batch.run import run_batch
+
+    manifest = read_manifest(args.manifest)
+    with progress_bar(f"{len(manifest.recordings)} recordings") as update:
+        rows = run_batch(
+            manifest,
+            args.output,
+            steps=tuple(args.steps),
+            preset=args.preset,
+            device=args.device,
+            seed=args.seed,
+            cpus=args.cpus,
+            address=args.address,
+            workers=args.workers,
+            use_ray=False if args.in_process else None,
+            say=print,
+            progress=update,
+        )
+    failed = [r for r in rows if r.status != "done"]
+    print(
+        f"{len(rows) - len(failed)} of {len(rows)} recordings done; "
+        f"{Path(args.output) / 'index.html'} shows them side by side"
+    )
+    for r in failed:
+        print(f"  {r.name}: {r.status}: {r.error}", file=sys.stderr)
+    return 1 if failed else 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from evcap.demo import run_demo
 
@@ -755,6 +786,41 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("output", metavar="OUT", help="a folder made by `evcap reconstruct`")
     p.add_argument("--session", help="the session (default: the one OUT was made from)")
     p.set_defaults(run=_cmd_report)
+
+    from evcap.batch.steps import STEPS
+
+    p = sub.add_parser(
+        "batch",
+        help="a collection of recordings through every step, on a Ray cluster",
+        description="Run each recording a manifest names (TOML: [[group]] tables with "
+        "recordings = [paths or globs] and the calibration recording to apply) through the "
+        "steps, as the single commands do, into OUT/<recording>/, with OUT/index.html and "
+        "OUT/summary.csv/.json side by side. Each step is a Ray task (Ray started here, or "
+        "the cluster at --address); without Ray (pip install 'evcap[cluster]') the recordings "
+        "run one after the other here. Steps already done are skipped on a rerun; a recording "
+        "that fails is listed with its error and the others go on.",
+    )
+    p.add_argument("manifest", metavar="MANIFEST", help="the manifest (TOML)")
+    p.add_argument("-o", "--output", required=True, metavar="OUT", help="the output folder")
+    p.add_argument("--address", help="an existing Ray cluster's address (host:port)")
+    p.add_argument(
+        "--steps",
+        nargs="+",
+        default=list(STEPS),
+        choices=STEPS,
+        help="the steps to run (default: all of them, in this order)",
+    )
+    p.add_argument("--preset", default="fast", choices=PRESET_NAMES, help="default: fast")
+    p.add_argument("--device", default="cpu", choices=DEVICES, help="cuda: a GPU per task")
+    p.add_argument("--seed", type=int, default=0, help="the reconstructions' seed")
+    p.add_argument("--cpus", type=int, default=1, help="cores per step's task (default 1)")
+    p.add_argument(
+        "--workers", type=int, help="cores of the Ray started here (default: all of them)"
+    )
+    p.add_argument(
+        "--in-process", action="store_true", help="without Ray, one recording after the other"
+    )
+    p.set_defaults(run=_cmd_batch)
 
     p = sub.add_parser(
         "demo",

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Create .venv (if missing) and install evcap with its test tools into it.
+# Create .venv (if missing) and install evcap with its test tools and Ray (evcap batch) into it.
 # torch goes first, pinned to the local CPU build; every later install is constrained to it,
 # so that no dependency can pull a CUDA build of torch from PyPI.
 set -euo pipefail
@@ -7,4 +7,4 @@ cd "$(dirname "$0")/.."
 python3 -m venv .venv
 .venv/bin/python -m pip install --quiet --upgrade pip
 .venv/bin/python -m pip install --quiet torch==2.13.0
-.venv/bin/python -m pip install --quiet -c constraints.txt -e '.[test]'
+.venv/bin/python -m pip install --quiet -c constraints.txt -e '.[test,cluster]'
