@@ -184,3 +184,30 @@ def test_stage_two_losses_leave_out_the_ablated_terms(stage_one):
     alone, left = losses(frozenset(cfg.ABLATIONS))
     assert alone == pytest.approx(terms["event"], rel=1e-6)
     assert left == {"event": terms["event"], "distill": 0.0, "anchor": 0.0, "tv": 0.0}
+
+
+def _floor_with_box(scale: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Depth [H, W] of a floor receding from 2 to 6 with a box at 2.5 standing on it in front,
+    a quarter of the width wide, and what is opaque, at ``scale`` times 64 x 48 pixels."""
+    h, w = 48 * scale, 64 * scale
+    depth = torch.linspace(6.0, 2.0, h)[:, None].repeat(1, w)
+    box = (slice(16 * scale, 40 * scale), slice(24 * scale, 40 * scale))
+    depth[box] = 2.5
+    return depth, torch.ones(h, w, dtype=torch.bool)
+
+
+def _sphere(scale: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Depth of a sphere alone (nothing opaque around it)."""
+    h, w = 48 * scale, 64 * scale
+    y, x = torch.meshgrid(torch.linspace(-1, 1, h), torch.linspace(-1.33, 1.33, w), indexing="ij")
+    r2 = x * x + y * y
+    inside = r2 < 0.8
+    return torch.where(inside, 3.0 - torch.sqrt((1 - r2).clamp(min=0)), 0.0), inside
+
+
+@pytest.mark.parametrize("scale", [1, 2, 4])
+def test_occluders_are_told_from_an_isolated_object_at_any_resolution(scale):
+    """A box in front of a floor is an occluder at every render size (its outline is a small
+    share of the opaque area, smaller as the resolution grows); a sphere alone is not."""
+    assert material.occluding_outlines(*_floor_with_box(scale)) > material.OCCLUDING_OUTLINE
+    assert material.occluding_outlines(*_sphere(scale)) == 0.0
