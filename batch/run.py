@@ -11,6 +11,7 @@ need evcap installed and the manifest's paths and OUTDIR at the same place (a sh
 from __future__ import annotations
 
 import importlib.util
+import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -148,9 +149,14 @@ def _run_on_ray(jobs, steps, manifest, rows, calibrations, address, workers, say
     started_here = not ray.is_initialized()
     if started_here:
         if address:
-            ray.init(address=address, log_to_driver=False)
+            ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
         else:
-            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+            ray.init(
+                num_cpus=workers,
+                include_dashboard=False,
+                log_to_driver=False,
+                logging_level=logging.WARNING,
+            )
     try:
         _submit_and_wait(ray, jobs, steps, manifest, rows, calibrations, say, tick)
     finally:

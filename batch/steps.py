@@ -106,7 +106,8 @@ def run_step(step: str, job: Job, before: StepResult | None = None) -> StepResul
     """Run ``step`` on the job's recording unless it is done; ``before``: the result of what it
     waits for (the previous step, or the group's calibration), which must have gone well."""
     if before is not None and not before.ok:
-        return StepResult(step, "not run", error=f"{before.name} {before.status}")
+        why = before.error if before.status == "not run" else f"{before.name} {before.status}"
+        return StepResult(step, "not run", error=why)
     state = _read_state(job.folder)
     if step in state and _outputs_there(step, job):
         return StepResult(step, "done before", **_kept(state[step]))

@@ -73,10 +73,15 @@ def write_summary(out: Path, rows: list[RecordingRow], about: dict) -> None:
     columns += list(FIGURES)
     lines = []
     for r in rows:
-        line = {"name": r.name, "status": r.status, "error": r.error, "seconds": r.seconds}
+        line = {
+            "name": r.name,
+            "status": r.status,
+            "error": r.error,
+            "seconds": round(r.seconds, 1),
+        }
         for s, step in r.steps.items():
-            line[f"{s}_status"], line[f"{s}_seconds"] = step.status, round(step.seconds, 2)
-        lines.append({**line, **r.figures})
+            line[f"{s}_status"], line[f"{s}_seconds"] = step.status, round(step.seconds, 1)
+        lines.append({**line, **{k: round(v, 4) for k, v in r.figures.items()}})
     part = out / "summary.csv.part"
     with part.open("w", newline="") as f:
         writer = csv.DictWriter(f, columns)
