@@ -45,6 +45,7 @@ from evcap.recon.shading import (
     cube_lookup,
     fibonacci_directions,
     mip_chain,
+    open_irradiance,
     shade,
 )
 from evcap.recon.visibility import bake_visibility, visibility_at
@@ -65,6 +66,25 @@ NEIGHBOUR_OPACITY = 0.1  # Gaussians fainter than this are not taken as the surf
 
 def _logit(x: torch.Tensor) -> torch.Tensor:
     return torch.log(x) - torch.log1p(-x)
+
+
+def relit_indirect(
+    indirect: torch.Tensor,
+    learnt: list[torch.Tensor],
+    light: list[torch.Tensor],
+    normals: torch.Tensor,
+    directions: torch.Tensor,
+) -> torch.Tensor:
+    """The learnt light from other surfaces [N, 3] under another ``light``: it came off surfaces
+    lit by the learnt light, so it changes as the light falling around the point does (the
+    ratio of the two lights' open-sky irradiance at its normal). Kept as learnt, it would
+    carry the first light's bounce into every relit view."""
+    old = open_irradiance(learnt, normals, directions)
+    new = open_irradiance(light, normals, directions)
+    floor = 1e-3 * old.mean().clamp(min=1e-6)
+    # where the learnt light hardly reaches a normal, the two lights' mean ratio
+    overall = new.mean(0) / old.mean(0).clamp(min=1e-6)
+    return indirect * torch.where(old > floor, new / old.clamp(min=floor), overall)
 
 
 class MaterialField(torch.nn.Module):
@@ -115,10 +135,13 @@ class MaterialField(torch.nn.Module):
         vis = None
         if self.visibility_sh is not None:
             vis = visibility_at(self.visibility_sh, self.directions)
+        learnt = mip_chain(self.light.radiance_faces())
         indirect = None
         if self.indirect_sh is not None:
             indirect = F.softplus(eval_sh(1, self.indirect_sh, n))
-        light = mip_chain(self.light.radiance_faces()) if light is None else light
+            if light is not None:  # relit: see relit_indirect
+                indirect = relit_indirect(indirect, learnt, light, n, self.directions)
+        light = learnt if light is None else light
         color = shade(
             self.base_color, self.roughness, n, view, light, self.directions, vis, indirect
         )

@@ -157,8 +157,7 @@ def shade(
     ``visibility`` [N, K] in [0, 1] at ``directions`` [K, 3] (None: nothing blocks the light);
     ``indirect`` [N, 3] irradiance from other surfaces, added to the diffuse light in the share
     of the hemisphere that the visibility says is blocked."""
-    coarse = next(f for f in light if f.shape[-1] <= 8)
-    sky = cube_lookup(coarse, directions)  # [K, 3]
+    sky = _coarse_sky(light, directions)  # [K, 3]
     cos = (normals @ directions.T).clamp(min=0)  # [N, K]
     weight = 4 * math.pi / len(directions)
     if visibility is not None:
@@ -173,3 +172,16 @@ def shade(
     reflected = F.normalize(2 * ndv[:, None] * normals - view, dim=1)
     specular = prefiltered(light, reflected, roughness) * split_sum(ndv, roughness)[:, None]
     return base_color / math.pi * irradiance + specular * spec_vis[:, None]
+
+
+def open_irradiance(
+    light: list[torch.Tensor], normals: torch.Tensor, directions: torch.Tensor
+) -> torch.Tensor:
+    """[N, 3] irradiance at unit normals [N, 3] from the whole light, nothing blocking it."""
+    cos = (normals @ directions.T).clamp(min=0)
+    return cos @ _coarse_sky(light, directions) * (4 * math.pi / len(directions))
+
+
+def _coarse_sky(light: list[torch.Tensor], directions: torch.Tensor) -> torch.Tensor:
+    """[K, 3] the light at ``directions``, read from its first mip level of at most 8 texels."""
+    return cube_lookup(next(f for f in light if f.shape[-1] <= 8), directions)

@@ -211,3 +211,24 @@ def test_occluders_are_told_from_an_isolated_object_at_any_resolution(scale):
     share of the opaque area, smaller as the resolution grows); a sphere alone is not."""
     assert material.occluding_outlines(*_floor_with_box(scale)) > material.OCCLUDING_OUTLINE
     assert material.occluding_outlines(*_sphere(scale)) == 0.0
+
+
+def test_relighting_scales_the_light_from_other_surfaces_with_the_light():
+    """Twice the light gives twice the radiance, the part that bounced off other surfaces
+    included (learnt under the first light, it must not stay as it was); the learnt light
+    itself gives the views as they were."""
+    from evcap.recon.gaussians import Background
+
+    g = plane_and_point(0.0)  # the point lies under the plane: most of its light bounced
+    up = torch.tensor([0.0, 0.0, 1.0]).repeat(len(g), 1)
+    light = Background.from_faces(torch.linspace(-1, 1, 6)[:, None, None, None].expand(6, 3, 8, 8))
+    field = material.MaterialField(g, light, up, bake_visibility(g), indirect=True)
+    with torch.no_grad():
+        field.indirect_sh.fill_(0.5)
+        learnt = mip_chain(light.radiance_faces())
+        center = torch.tensor([0.3, 0.2, -2.0])
+        before, _ = field.shaded(center)
+        same, _ = field.shaded(center, learnt)
+        doubled, _ = field.shaded(center, [2 * level for level in learnt])
+    assert torch.allclose(same, before, rtol=1e-5)
+    assert torch.allclose(doubled, 2 * before, rtol=1e-4)
