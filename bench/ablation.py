@@ -5,8 +5,14 @@ rows differ by stage II alone. Base color is also measured inside the shadows an
 bleeding that the simulator's ground truth marks. Writes a table (JSON and Markdown) beside
 the method's published means.
 
+With ``--geometry truth`` stage I does not learn the geometry: it starts on the truth's
+surfaces (flat, opaque Gaussians sampled over the scene's meshes) and learns only their
+radiance and the background from the events. Stage II then runs on geometry that is right, so
+its rows say what its terms and effects can do when stage I has done its part.
+
     .venv/bin/python bench/ablation.py [--scenes single_object multi_object] [--preset tiny]
         [--variants full "no visibility" ...] [--material-iterations N] [--device cpu]
+        [--geometry stage-one|truth] [--iterations N] [--effects auto|on] [--work DIR]
 """
 
 from __future__ import annotations
@@ -16,11 +22,20 @@ import json
 import shutil
 import tempfile
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
-from _common import RESULTS, machine, session_of
+import numpy as np
+import torch
+from _common import RESULTS, SCENES, machine, session_of
 
+import evcap.recon.radiance as radiance
+from evcap.recon.gaussians import START_VALUE, Background, Gaussians
 from evcap.recon.reconstruct import reconstruct
+from evcap.recon.sh import C0
+from evcap.sim.meshes import build_mesh
+from evcap.sim.scene import load_scene
 
 # name -> reconstruct() settings of stage II
 VARIANTS = {
@@ -28,7 +43,8 @@ VARIANTS = {
     "no anchor": {"ablate": ("anchor",)},
     "no edge TV": {"ablate": ("tv",)},
     "no distillation": {"ablate": ("distill",)},
-    "no visibility": {"visibility": "off"},
+    # indirect light stands for what the occluders hide: without visibility it goes too
+    "no visibility": {"visibility": "off", "indirect": "off"},
     "no indirect": {"indirect": "off"},
 }
 SWITCHES_EFFECT = {"no visibility": "visibility", "no indirect": "indirect"}
@@ -47,10 +63,75 @@ COLUMNS = (
     "base_color_psnr_cc",
     "base_color_psnr_cc_shadow",
     "base_color_psnr_cc_bleeding",
+    "base_color_psnr_cc_baseline",
+    "relit_object_psnr_cc",
     "roughness_mae",
     "pbr_render_psnr_cc",
     "material_seconds",
 )
+
+
+# stage I on the truth's surfaces: every geometry parameter kept, no densification
+TRUTH_GEOMETRY = {"densify_until": 0.0, "background_first": 0.0}
+TRUTH_GAUSSIANS = 20_000
+TRUTH_OPACITY = 0.95
+
+
+def surface_samples(scene: str, count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points spread over the scene's surfaces by area, with the faces' normals."""
+    mesh, _, _ = build_mesh(load_scene(SCENES / f"{scene}.toml"))
+    a, b, c = (mesh.vertices[mesh.faces[:, i]] for i in range(3))
+    cross = np.cross(b - a, c - a)
+    area = np.linalg.norm(cross, axis=1) / 2
+    rng = np.random.default_rng(seed)
+    face = rng.choice(len(area), count, p=area / area.sum())
+    u, v = rng.random((2, count))
+    flip = u + v > 1  # fold the square's far half back into the triangle
+    u, v = np.where(flip, 1 - u, u), np.where(flip, 1 - v, v)
+    points = a[face] + u[:, None] * (b - a)[face] + v[:, None] * (c - a)[face]
+    normals = cross[face] / np.maximum(2 * area[face], 1e-12)[:, None]
+    return points, normals
+
+
+def truth_gaussians(scene: str, sh_degree: int) -> Gaussians:
+    """Flat opaque discs on the truth's surfaces, facing along the surface normal, each as wide
+    as the mean spacing of the samples, mid-gray."""
+    points, normals = surface_samples(scene, TRUTH_GAUSSIANS)
+    mesh, _, _ = build_mesh(load_scene(SCENES / f"{scene}.toml"))
+    a, b, c = (mesh.vertices[mesh.faces[:, i]] for i in range(3))
+    spacing = np.sqrt(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum() / 2 / len(points))
+    n = np.where(normals[:, 2:] < 0, -normals, normals)  # a disc is two-sided
+    # the rotation taking +z to n: (w, x, y, z) = normalise(1 + n.z, z x n)
+    quats = np.stack([1 + n[:, 2], -n[:, 1], n[:, 0], np.zeros(len(n))], 1)
+    count = len(points)
+    log_scales = np.log([0.8 * spacing, 0.8 * spacing, 0.02 * spacing])
+    logit = np.log(TRUTH_OPACITY / (1 - TRUTH_OPACITY))
+    return Gaussians(
+        torch.as_tensor(points, dtype=torch.float32),
+        torch.as_tensor(np.tile(log_scales, (count, 1)), dtype=torch.float32),
+        torch.as_tensor(quats / np.linalg.norm(quats, axis=1, keepdims=True), dtype=torch.float32),
+        torch.full((count,), float(logit)),
+        torch.full((count, 1, 3), START_VALUE / C0),
+        torch.zeros(count, (sh_degree + 1) ** 2 - 1, 3),
+    )
+
+
+@contextmanager
+def starting_on_truth(scene: str) -> Iterator[None]:
+    """Stage I's start replaced by the truth's surfaces, whose geometry does not learn."""
+    original = radiance.new_field
+
+    def new_field(data, config, seed, device, backend):
+        g = truth_gaussians(scene, config.sh_degree)
+        for name in ("means", "log_scales", "quats", "opacity_logits"):
+            getattr(g, name).requires_grad_(False)
+        return radiance.RadianceField(g, Background(config.background_size), backend).to(device)
+
+    radiance.new_field = new_field
+    try:
+        yield
+    finally:
+        radiance.new_field = original
 
 
 def cell(v: object) -> str:
@@ -66,17 +147,43 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--material-iterations", type=int, help="stage II steps (preset's)")
+    parser.add_argument("--iterations", type=int, help="stage I steps (preset's)")
+    parser.add_argument(
+        "--geometry",
+        default="stage-one",
+        choices=["stage-one", "truth"],
+        help="stage I learns the geometry, or starts on the truth's surfaces and keeps them",
+    )
+    parser.add_argument(
+        "--effects",
+        default="auto",
+        choices=["auto", "on"],
+        help="visibility and indirect light in the full model: as stage II decides, or on",
+    )
+    parser.add_argument("--work", type=Path, help="keep the runs in this folder (default: none)")
     args = parser.parse_args()
     rows, stage_one = [], {}
-    with tempfile.TemporaryDirectory() as tmp:
+    forced = {"visibility": "on", "indirect": "on"} if args.effects == "on" else {}
+    with tempfile.TemporaryDirectory() as scratch:
+        tmp = args.work or scratch
         for scene in args.scenes:
             session = session_of(scene)
             base = Path(tmp) / scene
             started = time.perf_counter()
-            first = reconstruct(
-                session, base, preset=args.preset, device=args.device, stage="radiance"
-            )
+            truth = args.geometry == "truth"
+            with starting_on_truth(scene) if truth else nullcontext():
+                first = reconstruct(
+                    session,
+                    base,
+                    preset=args.preset,
+                    device=args.device,
+                    stage="radiance",
+                    iterations=args.iterations,
+                    radiance_settings=TRUTH_GEOMETRY if truth else None,
+                )
             stage_one[scene] = {
+                "object_psnr_cc": first.figures.object_psnr_cc,
+                "object_psnr_constant": first.figures.object_psnr_constant,
                 "render_psnr_cc": first.figures.render_psnr_cc,
                 "normal_mae_deg": first.figures.normal_mae_deg,
                 "seconds": time.perf_counter() - started,
@@ -97,7 +204,7 @@ def main() -> None:
                     stage="material",
                     material_iterations=args.material_iterations,
                     overwrite=True,
-                    **settings,
+                    **{**forced, **settings},
                 )
                 if name == "full":
                     full_effects = result.effects
@@ -116,12 +223,18 @@ def main() -> None:
     table = "\n".join(lines) + "\n"
     RESULTS.mkdir(exist_ok=True)
     name = "ablation" if args.preset == "tiny" else f"ablation_{args.preset}"
+    if args.geometry == "truth":
+        name += "_truth_geometry"
+    if args.effects == "on":
+        name += "_effects_on"
     (RESULTS / f"{name}.json").write_text(
         json.dumps(
             {
                 "benchmark": "ablation",
                 "machine": machine(),
                 "preset": args.preset,
+                "geometry": args.geometry,
+                "effects": args.effects,
                 "stage_one": stage_one,
                 "runs": rows,
                 "published": PUBLISHED,

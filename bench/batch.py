@@ -61,6 +61,7 @@ def main() -> None:
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
+        (root / "recordings").mkdir()
         for i in range(args.recordings):
             scene = root / f"scene{i}.toml"
             scene.write_text(SCENE.format(seed=i))
