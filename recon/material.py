@@ -195,7 +195,7 @@ def new_material_field(
             ((cams - g.means) * normals).sum(1, keepdim=True) < 0, -normals, normals
         )
     occluded = modelled(config.visibility, lambda: has_occluders(g, data, radiance.backend))
-    visibility = bake_visibility(g) if occluded else None
+    visibility = bake_visibility(g, normals) if occluded else None
     indirect = modelled(config.indirect, lambda: occluded)
     field = MaterialField(g, light, normals.cpu(), visibility, indirect, radiance.backend)
     field = field.to(g.means.device)

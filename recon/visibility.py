@@ -3,7 +3,10 @@ geometry as spherical harmonics (degree 3), used by stage II when the scene has 
 
 The Gaussians' opacity is splatted into an occupancy grid over the opaque part of the scene;
 from each Gaussian, rays in fixed directions march through it and keep the light that gets
-through (transmittance). A ray starts two cells out so that a Gaussian does not shadow itself.
+through (transmittance). A ray starts off the Gaussian's own surface: lifted along its normal
+(to the side the ray leaves by) and two cells out along the ray. Lifted along the ray alone, a
+ray that grazes a plane (a floor, a table) marched through the plane's own cells and the plane
+shadowed itself from its whole horizon.
 """
 
 from __future__ import annotations
@@ -21,11 +24,13 @@ SH_DEGREE = 3
 BAKE_DIRECTIONS = 128
 GRID = 64  # cells along the longest side of the occupied box
 OPAQUE = 0.05  # Gaussians fainter than this neither block light nor get a bake
+LIFT = 2.5  # cells a ray starts off its Gaussian's surface: past the surface's own occupancy
 
 
 @torch.no_grad()
-def bake_visibility(gaussians: Gaussians, chunk: int = 512) -> torch.Tensor:
-    """[N, 16] SH coefficients of each Gaussian's visibility (1: open sky, 0: blocked)."""
+def bake_visibility(gaussians: Gaussians, normals: torch.Tensor, chunk: int = 512) -> torch.Tensor:
+    """[N, 16] SH coefficients of each Gaussian's visibility (1: open sky, 0: blocked), the rays
+    starting off the surface through it whose unit normals [N, 3] are given (either side)."""
     means, opacity = gaussians.means.detach(), gaussians.opacities.detach()
     n = len(means)
     coeffs = torch.zeros(n, (SH_DEGREE + 1) ** 2, device=means.device)
@@ -47,9 +52,13 @@ def bake_visibility(gaussians: Gaussians, chunk: int = 512) -> torch.Tensor:
     project = torch.linalg.pinv(basis)  # least squares from K directions to 16 coefficients
     steps = int(math.ceil(float(dims.float().norm())))
     t = (torch.arange(steps, device=means.device, dtype=torch.float32) + 2) * cell
+    normals = normals.to(means.device)
     for i in torch.nonzero(solid).squeeze(1).split(chunk):
+        # each ray lifted off the surface on the side it leaves by: [B, K, 3]
+        side = torch.sign(normals[i] @ dirs.T)[..., None]
+        start = means[i, None] + LIFT * cell * side * normals[i, None]
         # [B, K, S, 3] points along every ray, in the grid's [-1, 1] coordinates
-        p = means[i, None, None] + dirs[None, :, None] * t[None, None, :, None]
+        p = start[:, :, None] + dirs[None, :, None] * t[None, None, :, None]
         g = (p - lo) / (dims.float() * cell) * 2 - 1
         occ = F.grid_sample(
             occupancy[None, None],

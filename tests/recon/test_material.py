@@ -62,6 +62,9 @@ def test_light_from_an_image_reads_the_right_directions():
     assert cube_directions(4).norm(dim=-1).numpy() == pytest.approx(1.0)
 
 
+UP = torch.tensor([[0.0, 0.0, 1.0]])
+
+
 def plane_and_point(z_point: float) -> Gaussians:
     """A wide opaque plane of flat Gaussians at z = 1 and one small Gaussian at z_point."""
     xs, ys = np.meshgrid(np.linspace(-1, 1, 21), np.linspace(-1, 1, 21))
@@ -77,7 +80,7 @@ def plane_and_point(z_point: float) -> Gaussians:
 
 def test_visibility_is_blocked_under_a_roof_and_open_beside_it():
     g = plane_and_point(0.0)
-    coeffs = bake_visibility(g)
+    coeffs = bake_visibility(g, UP.repeat(len(g), 1))
     up, down = torch.tensor([[0.0, 0, 1]]), torch.tensor([[0.0, 0, -1]])
     point = coeffs[-1:]
     assert float(visibility_at(point, up)) < 0.2
@@ -85,11 +88,31 @@ def test_visibility_is_blocked_under_a_roof_and_open_beside_it():
     assert torch.isfinite(coeffs).all()
 
 
+def test_a_floor_alone_sees_its_whole_sky_down_to_the_horizon():
+    """A plane does not shadow itself: from the middle of a wide floor the sky is open at
+    every elevation, the low ones included (rays lifted along the ray alone grazed the floor's
+    own cells and saw it as a wall)."""
+    g = plane_and_point(1.0)  # the point lies in the plane
+    coeffs = bake_visibility(g, UP.repeat(len(g), 1))
+    middle = coeffs[len(g) // 2 : len(g) // 2 + 1]  # the plane's centre
+    elevations = torch.deg2rad(torch.tensor([10.0, 20.0, 45.0, 90.0]))
+    for azimuth in torch.deg2rad(torch.tensor([0.0, 60.0, 135.0])):
+        d = torch.stack(
+            [
+                elevations.cos() * azimuth.cos(),
+                elevations.cos() * azimuth.sin(),
+                elevations.sin(),
+            ],
+            1,
+        )
+        assert visibility_at(middle, d).min() > 0.8
+
+
 def test_visibility_of_nothing_is_open():
     g = plane_and_point(0.0)
     with torch.no_grad():
         g.opacity_logits.fill_(-10.0)  # all transparent: nothing blocks
-    v = visibility_at(bake_visibility(g), fibonacci_directions(64))
+    v = visibility_at(bake_visibility(g, UP.repeat(len(g), 1)), fibonacci_directions(64))
     assert v.numpy() == pytest.approx(1.0, abs=1e-5)
 
 
@@ -222,7 +245,7 @@ def test_relighting_scales_the_light_from_other_surfaces_with_the_light():
     g = plane_and_point(0.0)  # the point lies under the plane: most of its light bounced
     up = torch.tensor([0.0, 0.0, 1.0]).repeat(len(g), 1)
     light = Background.from_faces(torch.linspace(-1, 1, 6)[:, None, None, None].expand(6, 3, 8, 8))
-    field = material.MaterialField(g, light, up, bake_visibility(g), indirect=True)
+    field = material.MaterialField(g, light, up, bake_visibility(g, up), indirect=True)
     with torch.no_grad():
         field.indirect_sh.fill_(0.5)
         learnt = mip_chain(light.radiance_faces())
