@@ -17,7 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from evcap.batch.manifest import Manifest
-from evcap.batch.steps import STEPS, Job, StepResult, calibrate_group, run_step
+from evcap.batch.steps import STEPS, Job, StepResult, calibrate_group, one_line, run_step
 from evcap.batch.summary import RecordingRow, write_summary
 from evcap.errors import InputError
 
@@ -212,19 +212,23 @@ def _collect_stopped(ray, pending, rows, calibrations) -> None:
         ready, _ = ray.wait(list(pending), num_returns=1, timeout=deadline - time.monotonic())
         for ref in ready:
             row, what = pending.pop(ref)
-            result = _result(ray, ref, what)
-            if result.status == "failed" and "cancel" in result.error.lower():
-                result.status, result.error = "stopped", "interrupted"
-            (calibrations if row is None else row.steps)[what] = result
+            (calibrations if row is None else row.steps)[what] = _result(ray, ref, what)
 
 
 def _result(ray, ref, what: str) -> StepResult:
-    """The task's result; a task that died (its worker lost, cancelled) as a failed step."""
+    """The task's result; a cancelled task as a stopped step, one whose worker raised or died
+    as a failed step with a one-line error."""
     try:
         return ray.get(ref)
-    except (ray.exceptions.RayError, KeyboardInterrupt) as e:
-        line = str(e).strip().splitlines()
-        return StepResult(what, "failed", error=line[0] if line else type(e).__name__)
+    except (ray.exceptions.TaskCancelledError, KeyboardInterrupt):
+        return StepResult(what, "stopped", error="interrupted")
+    except ray.exceptions.RayTaskError as e:
+        cause = getattr(e, "cause", None)
+        if isinstance(cause, KeyboardInterrupt):
+            return StepResult(what, "stopped", error="interrupted")
+        return StepResult(what, "failed", error=one_line(cause if cause is not None else e))
+    except ray.exceptions.RayError as e:  # its worker or node lost
+        return StepResult(what, "failed", error=f"{type(e).__name__}: {one_line(e)}")
 
 
 def _said(say, result: StepResult, name: str = "") -> None:

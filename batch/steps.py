@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import time
 import traceback
@@ -130,7 +131,7 @@ def _run(name: str, folder: Path, key: str, work, cpus: int) -> StepResult:
     except KeyboardInterrupt:
         return StepResult(name, "stopped", time.perf_counter() - started, error="interrupted")
     except Exception as e:  # any failure is this recording's; the others go on
-        return StepResult(name, "failed", time.perf_counter() - started, error=_one_line(e))
+        return StepResult(name, "failed", time.perf_counter() - started, error=one_line(e))
     summary, figures = made if isinstance(made, tuple) else (made, {})
     if summary is None:  # the work was interrupted and kept what it had (reconstruct)
         return StepResult(name, "stopped", time.perf_counter() - started, error="interrupted")
@@ -239,11 +240,12 @@ def _use_threads(cpus: int) -> None:
     os.environ["OMP_NUM_THREADS"] = str(cpus)
 
 
-def _one_line(e: BaseException) -> str:
-    text = " ".join(str(e).split()) or type(e).__name__
-    if not isinstance(e, OSError | ValueError | RuntimeError):  # not ours: where it came from
-        where = traceback.extract_tb(e.__traceback__)[-1]
-        text = f"{type(e).__name__}: {text} ({Path(where.filename).name}:{where.lineno})"
+def one_line(e: BaseException) -> str:
+    """The error in one line, without terminal colors."""
+    text = " ".join(re.sub(r"\x1b\[[0-9;]*m", "", str(e)).split()) or type(e).__name__
+    frames = traceback.extract_tb(e.__traceback__)
+    if frames and not isinstance(e, OSError | ValueError | RuntimeError):  # not ours: where
+        text = f"{type(e).__name__}: {text} ({Path(frames[-1].filename).name}:{frames[-1].lineno})"
     return text
 
 
