@@ -791,7 +791,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "batch",
-        help="a collection of recordings through every step, on a Ray cluster",
+        help="many recordings through every step, on a Ray cluster",
         description="Run each recording a manifest names (TOML: [[group]] tables with "
         "recordings = [paths or globs] and the calibration recording to apply) through the "
         "steps, as the single commands do, into OUT/<recording>/, with OUT/index.html and "

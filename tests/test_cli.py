@@ -20,6 +20,7 @@ def test_help_lists_every_command_with_one_line():
         "poses",
         "reconstruct",
         "report",
+        "batch",
         "demo",
     ]
     assert all(len(line.split()) > 2 for line in lines)
