@@ -88,6 +88,11 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+# a cluster on the loopback address alone: no token (Ray makes one at its first start in the
+# user's home, which a later head and worker in other folders did not agree on), no statistics
+RAY_ENV = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0", "RAY_AUTH_MODE": "disabled"}
+
+
 @pytest.fixture
 def ray_cluster():
     """A Ray head and one worker node, each with one core, on 127.0.0.1 only."""
@@ -95,15 +100,16 @@ def ray_cluster():
     port = free_port()
     # Ray's sockets live in its temp folder, whose path must stay short
     temp = tempfile.mkdtemp(prefix="ray", dir="/tmp")
-    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
+    env = RAY_ENV
     common = ["--num-cpus=1", "--disable-usage-stats"]
     ray = str(BIN / "ray")
     head = [ray, "start", "--head", "--node-ip-address=127.0.0.1", f"--port={port}"]
     head += ["--include-dashboard=false", f"--temp-dir={temp}", *common]
+    worker = [ray, "start", f"--address=127.0.0.1:{port}", "--node-ip-address=127.0.0.1"]
     try:
-        subprocess.run(head, check=True, env=env, capture_output=True, timeout=180)
-        worker = [ray, "start", f"--address=127.0.0.1:{port}", "--node-ip-address=127.0.0.1"]
-        subprocess.run([*worker, *common], check=True, env=env, capture_output=True, timeout=180)
+        for command in (head, [*worker, *common]):
+            run = subprocess.run(command, env=env, capture_output=True, text=True, timeout=180)
+            assert run.returncode == 0, f"{' '.join(command)}:\n{run.stdout}\n{run.stderr}"
         yield f"127.0.0.1:{port}"
     finally:
         subprocess.run([ray, "stop", "--force"], env=env, capture_output=True, timeout=120)
@@ -114,7 +120,7 @@ def test_a_ray_cluster_gives_what_the_process_gives(collection, in_process, ray_
     out = tmp_path / "cluster"
     command = [str(BIN / "evcap"), "batch", str(collection), "-o", str(out)]
     command += ["--address", ray_cluster, "--preset", "tiny", "--steps", *STEPS]
-    run = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    run = subprocess.run(command, capture_output=True, text=True, timeout=600, env=RAY_ENV)
     assert run.returncode == 1, run.stderr  # one recording failed
     assert "2 of 3 recordings done" in run.stdout
     assert "broken: failed" in run.stderr
@@ -126,7 +132,7 @@ def test_a_ray_cluster_gives_what_the_process_gives(collection, in_process, ray_
     for name in ("left", "right"):
         assert rows[name]["figures"] == pytest.approx(expected[name]["figures"], rel=1e-6)
     # the rerun on the cluster skips the two done
-    again = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    again = subprocess.run(command, capture_output=True, text=True, timeout=600, env=RAY_ENV)
     assert again.returncode == 1, again.stderr
     for name in ("left", "right"):
         steps = summary(out)[name]["steps"]
