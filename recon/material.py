@@ -58,7 +58,7 @@ CHANNELS = {"radiance": 3, "base_color": 3, "roughness": 1, "shading_normal": 3}
 # view over the square root of its opaque pixels (an outline's length against the region's
 # size, whatever the resolution): the multi-object scene's true surfaces 1.6 (0.75 % of its
 # opaque pixels: a share of the area missed them), its stage-I fog more; the demo's isolated
-# sphere 0.2, single_object's stage-I fog 0.64
+# sphere 0.2, single_object's stage-I fog 0.62
 OCCLUSION_JUMP = 0.1  # relative depth step between neighbouring pixels
 OCCLUDING_OUTLINE = 0.8
 NEIGHBOUR_OPACITY = 0.1  # Gaussians fainter than this are not taken as the surface
