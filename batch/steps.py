@@ -262,6 +262,11 @@ def _read_state(folder: Path) -> dict:
 
 def _write_state(folder: Path, state: dict) -> None:
     folder.mkdir(parents=True, exist_ok=True)
-    tmp = folder / (STATE + ".tmp")
-    tmp.write_text(json.dumps(state, indent=1))
-    tmp.replace(folder / STATE)
+    write_whole(folder / STATE, json.dumps(state, indent=1))
+
+
+def write_whole(path: Path, text: str) -> None:
+    """``text`` into ``path``, which takes its name only when written whole."""
+    part = path.with_name(path.name + ".part")
+    part.write_text(text, encoding="utf-8")
+    part.replace(path)

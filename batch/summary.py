@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import csv
 import html
+import io
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from evcap.batch.steps import FIGURES, STEPS, StepResult
+from evcap.batch.steps import FIGURES, STEPS, StepResult, write_whole
 
 FIGURE_LABELS = {
     "object_psnr_cc": "object PSNR (dB)",
@@ -67,7 +68,7 @@ def write_summary(out: Path, rows: list[RecordingRow], about: dict) -> None:
     """summary.json (everything), summary.csv (a row per recording) and index.html."""
     out.mkdir(parents=True, exist_ok=True)
     document = {**about, "recordings": [r.to_json() for r in rows]}
-    _replace(out / "summary.json", json.dumps(document, indent=2))
+    write_whole(out / "summary.json", json.dumps(document, indent=2))
     columns = ["name", "status", "error", "seconds"]
     columns += [f"{s}_{k}" for s in STEPS for k in ("status", "seconds")]
     columns += list(FIGURES)
@@ -82,19 +83,12 @@ def write_summary(out: Path, rows: list[RecordingRow], about: dict) -> None:
         for s, step in r.steps.items():
             line[f"{s}_status"], line[f"{s}_seconds"] = step.status, round(step.seconds, 1)
         lines.append({**line, **{k: round(v, 4) for k, v in r.figures.items()}})
-    part = out / "summary.csv.part"
-    with part.open("w", newline="") as f:
-        writer = csv.DictWriter(f, columns)
-        writer.writeheader()
-        writer.writerows(lines)
-    part.replace(out / "summary.csv")
-    _replace(out / "index.html", _page(out, rows, about))
-
-
-def _replace(path: Path, text: str) -> None:
-    part = path.with_name(path.name + ".part")
-    part.write_text(text, encoding="utf-8")
-    part.replace(path)
+    table = io.StringIO(newline="")
+    writer = csv.DictWriter(table, columns)
+    writer.writeheader()
+    writer.writerows(lines)
+    write_whole(out / "summary.csv", table.getvalue())
+    write_whole(out / "index.html", _page(out, rows, about))
 
 
 def _page(out: Path, rows: list[RecordingRow], about: dict) -> str:
