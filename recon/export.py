@@ -122,8 +122,6 @@ def save_checkpoint(field: RadianceField, config: dict, path: Path) -> None:
 def save_material_checkpoint(field: MaterialField, path: Path) -> None:
     """Stage II: the material, the light, the baked visibility and which effects were on."""
     state = {k: v.detach().cpu() for k, v in field.state_dict().items()}
-    if field.visibility_sh is not None:
-        state["visibility_sh"] = field.visibility_sh.detach().cpu()
     _save({"material": state, "effects": field.effects}, path)
 
 

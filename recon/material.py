@@ -48,7 +48,7 @@ from evcap.recon.shading import (
     open_irradiance,
     shade,
 )
-from evcap.recon.visibility import bake_visibility, visibility_at
+from evcap.recon.visibility import bake_visibility
 from evcap.session import Session
 
 # the channels of a stage-II render, in order
@@ -108,13 +108,13 @@ class MaterialField(torch.nn.Module):
         self.normals = torch.nn.Parameter(normals.clone())
         self.indirect_sh = torch.nn.Parameter(torch.full((n, 4, 3), -8.0)) if indirect else None
         self.register_buffer("directions", fibonacci_directions(DIFFUSE_DIRECTIONS))
-        self.visibility_sh = visibility
+        self.register_buffer("visibility", visibility)  # [N, K] at the directions, or None
         self.backend = backend
 
     @property
     def effects(self) -> dict[str, bool]:
         return {
-            "visibility": self.visibility_sh is not None,
+            "visibility": self.visibility is not None,
             "indirect": self.indirect_sh is not None,
         }
 
@@ -132,9 +132,7 @@ class MaterialField(torch.nn.Module):
         view = F.normalize(center - g.means, dim=1)
         n = F.normalize(self.normals, dim=1)
         n = torch.where((n * view).sum(1, keepdim=True) < 0, -n, n)  # two-sided
-        vis = None
-        if self.visibility_sh is not None:
-            vis = visibility_at(self.visibility_sh, self.directions)
+        vis = None if self.visibility is None else self.visibility.float()
         learnt = mip_chain(self.light.radiance_faces())
         indirect = None
         if self.indirect_sh is not None:
@@ -195,7 +193,8 @@ def new_material_field(
             ((cams - g.means) * normals).sum(1, keepdim=True) < 0, -normals, normals
         )
     occluded = modelled(config.visibility, lambda: has_occluders(g, data, radiance.backend))
-    visibility = bake_visibility(g, normals) if occluded else None
+    directions = fibonacci_directions(DIFFUSE_DIRECTIONS).to(g.means.device)
+    visibility = bake_visibility(g, normals, directions) if occluded else None
     indirect = modelled(config.indirect, lambda: occluded)
     field = MaterialField(g, light, normals.cpu(), visibility, indirect, radiance.backend)
     field = field.to(g.means.device)

@@ -19,7 +19,7 @@ from evcap.recon.shading import (
     mip_chain,
     shade,
 )
-from evcap.recon.visibility import bake_visibility, visibility_at
+from evcap.recon.visibility import bake_visibility
 from evcap.session import Session
 
 
@@ -80,12 +80,12 @@ def plane_and_point(z_point: float) -> Gaussians:
 
 def test_visibility_is_blocked_under_a_roof_and_open_beside_it():
     g = plane_and_point(0.0)
-    coeffs = bake_visibility(g, UP.repeat(len(g), 1))
-    up, down = torch.tensor([[0.0, 0, 1]]), torch.tensor([[0.0, 0, -1]])
-    point = coeffs[-1:]
-    assert float(visibility_at(point, up)) < 0.2
-    assert float(visibility_at(point, down)) > 0.8
-    assert torch.isfinite(coeffs).all()
+    dirs = torch.tensor([[0.0, 0, 1], [0.0, 0.3, 0.95], [0.0, 0, -1]])
+    v = bake_visibility(g, UP.repeat(len(g), 1), dirs).float()
+    point = v[-1]
+    assert float(point[0]) < 0.2 and float(point[1]) < 0.2  # the roof overhead
+    assert float(point[2]) > 0.8
+    assert torch.isfinite(v).all()
 
 
 def test_a_floor_alone_sees_its_whole_sky_down_to_the_horizon():
@@ -93,8 +93,6 @@ def test_a_floor_alone_sees_its_whole_sky_down_to_the_horizon():
     every elevation, the low ones included (rays lifted along the ray alone grazed the floor's
     own cells and saw it as a wall)."""
     g = plane_and_point(1.0)  # the point lies in the plane
-    coeffs = bake_visibility(g, UP.repeat(len(g), 1))
-    middle = coeffs[len(g) // 2 : len(g) // 2 + 1]  # the plane's centre
     elevations = torch.deg2rad(torch.tensor([10.0, 20.0, 45.0, 90.0]))
     for azimuth in torch.deg2rad(torch.tensor([0.0, 60.0, 135.0])):
         d = torch.stack(
@@ -105,14 +103,52 @@ def test_a_floor_alone_sees_its_whole_sky_down_to_the_horizon():
             ],
             1,
         )
-        assert visibility_at(middle, d).min() > 0.8
+        middle = bake_visibility(g, UP.repeat(len(g), 1), d)[len(g) // 2]  # the plane's centre
+        assert float(middle.min()) > 0.8
+
+
+def test_a_floor_beside_a_resting_sphere_sees_what_the_sphere_leaves_open():
+    """Flat discs on a floor and on a ball resting on it: the floor's baked visibility close to
+    the ball's foot, direction by direction, against the ball's exact shadow (a ray is blocked
+    where it passes within the radius of the centre). Rays marched through a grid started
+    inside the ball there and saw a tenth of the sky the floor sees."""
+    radius, spacing = 0.4, 0.04
+    xs, ys = np.meshgrid(np.arange(-1.6, 1.6, spacing), np.arange(-1.6, 1.6, spacing))
+    floor = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], 1)
+    ball_normals = fibonacci_directions(int(4 * math.pi * radius**2 / spacing**2)).numpy()
+    centre = np.array([0.0, 0.0, radius])
+    means = np.concatenate([floor, centre + radius * ball_normals])
+    normals = np.concatenate([np.tile([0.0, 0.0, 1.0], (len(floor), 1)), ball_normals])
+    # the rotation taking +z to each normal: (w, x, y, z) = normalise(1 + n.z, -n.y, n.x, 0)
+    quats = np.stack([1 + normals[:, 2], -normals[:, 1], normals[:, 0], 0 * normals[:, 0]], 1)
+    quats[normals[:, 2] < -0.999] = [0.0, 1.0, 0.0, 0.0]
+    n = len(means)
+    g = Gaussians(
+        torch.tensor(means, dtype=torch.float32),
+        torch.log(torch.tensor([0.6 * spacing, 0.6 * spacing, 0.01 * spacing])).repeat(n, 1),
+        torch.nn.functional.normalize(torch.tensor(quats, dtype=torch.float32), dim=1),
+        torch.full((n,), 4.0),
+        torch.zeros(n, 1, 3),
+        torch.zeros(n, 0, 3),
+    )
+    dirs = fibonacci_directions(256)
+    baked = bake_visibility(g, torch.tensor(normals, dtype=torch.float32), dirs).float().numpy()
+    near = np.flatnonzero(np.abs(np.linalg.norm(floor[:, :2], axis=1) - 0.55) < 0.1)
+    to_centre = centre - floor[near]  # [M, 3]
+    along = to_centre @ dirs.numpy().T  # [M, K]
+    miss = (to_centre**2).sum(1)[:, None] - along**2
+    exact = ~((along > 0) & (miss < radius**2))
+    up = dirs.numpy()[:, 2] > 0.05
+    error = np.abs(baked[near][:, up] - exact[:, up])
+    assert exact[:, up].mean() < 0.9  # the ball hides a good part of the sky there
+    assert error.mean() < 0.05
 
 
 def test_visibility_of_nothing_is_open():
     g = plane_and_point(0.0)
     with torch.no_grad():
         g.opacity_logits.fill_(-10.0)  # all transparent: nothing blocks
-    v = visibility_at(bake_visibility(g, UP.repeat(len(g), 1)), fibonacci_directions(64))
+    v = bake_visibility(g, UP.repeat(len(g), 1), fibonacci_directions(64)).float()
     assert v.numpy() == pytest.approx(1.0, abs=1e-5)
 
 
@@ -245,7 +281,8 @@ def test_relighting_scales_the_light_from_other_surfaces_with_the_light():
     g = plane_and_point(0.0)  # the point lies under the plane: most of its light bounced
     up = torch.tensor([0.0, 0.0, 1.0]).repeat(len(g), 1)
     light = Background.from_faces(torch.linspace(-1, 1, 6)[:, None, None, None].expand(6, 3, 8, 8))
-    field = material.MaterialField(g, light, up, bake_visibility(g, up), indirect=True)
+    dirs = fibonacci_directions(material.DIFFUSE_DIRECTIONS)
+    field = material.MaterialField(g, light, up, bake_visibility(g, up, dirs), indirect=True)
     with torch.no_grad():
         field.indirect_sh.fill_(0.5)
         learnt = mip_chain(light.radiance_faces())
