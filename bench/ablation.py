@@ -8,11 +8,15 @@ the method's published means.
 With ``--geometry truth`` stage I does not learn the geometry: it starts on the truth's
 surfaces (flat, opaque Gaussians sampled over the scene's meshes) and learns only their
 radiance and the background from the events. Stage II then runs on geometry that is right, so
-its rows say what its terms and effects can do when stage I has done its part.
+its rows say what its terms and effects can do when stage I has done its part. With
+``--light truth`` stage II does not learn the light either: it is held at the truth's (the
+scene's sky, and its sun as a 4-degree lobe of the same irradiance), so the rows say what the
+terms and effects can do when the light is right too.
 
     .venv/bin/python bench/ablation.py [--scenes single_object multi_object] [--preset tiny]
         [--variants full "no visibility" ...] [--material-iterations N] [--device cpu]
         [--geometry stage-one|truth] [--iterations N] [--effects auto|on] [--work DIR]
+        [--light learnt|truth]
 """
 
 from __future__ import annotations
@@ -30,10 +34,12 @@ import numpy as np
 import torch
 from _common import RESULTS, SCENES, machine, session_of
 
+import evcap.recon.material as material
 import evcap.recon.radiance as radiance
 from evcap.recon.gaussians import START_VALUE, Background, Gaussians
 from evcap.recon.reconstruct import reconstruct
 from evcap.recon.sh import C0
+from evcap.sim.lighting import Environment
 from evcap.sim.meshes import build_mesh
 from evcap.sim.scene import load_scene
 
@@ -134,6 +140,46 @@ def starting_on_truth(scene: str) -> Iterator[None]:
         radiance.new_field = original
 
 
+SUN_WIDTH_DEG = 4.0
+
+
+def truth_light_image(scene: str, width: int = 512) -> np.ndarray:
+    """The scene's environment as a latitude-longitude image, its sun a narrow lobe of the
+    sun's irradiance (the simulator's sun is a disc half a degree wide: no cube map holds it)."""
+    env = Environment(load_scene(SCENES / f"{scene}.toml").lighting)
+    table = env.table(width)
+    h = width // 2
+    lat = (0.5 - (np.arange(h) + 0.5) / h) * np.pi
+    lon = ((np.arange(width) + 0.5) / width - 0.5) * 2 * np.pi
+    lat, lon = np.meshgrid(lat, lon, indexing="ij")
+    d = np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], -1)
+    lobe = np.exp(-(1 - d @ env.sun_direction) / (1 - np.cos(np.deg2rad(SUN_WIDTH_DEG))))
+    solid = (lobe * np.cos(lat)).sum() * (np.pi / h) * (2 * np.pi / width)
+    return table + lobe[..., None] * env.sun_irradiance * env.scale / solid
+
+
+@contextmanager
+def truth_light(scene: str) -> Iterator[None]:
+    """Stage II's light held at the truth's."""
+    original = material.new_material_field
+    image = truth_light_image(scene)
+
+    def new_material_field(radiance_field, data, config):
+        field = original(radiance_field, data, config)
+        faces = material.light_from_image(image, field.light.faces.shape[-1])[0]
+        faces = faces.clamp(min=1e-4).to(field.light.faces.device)
+        with torch.no_grad():  # the inverse of the cube map's softplus
+            field.light.faces.copy_(faces + torch.log(-torch.expm1(-faces)))
+        field.light.faces.requires_grad_(False)
+        return field
+
+    material.new_material_field = new_material_field
+    try:
+        yield
+    finally:
+        material.new_material_field = original
+
+
 def cell(v: object) -> str:
     if isinstance(v, float):
         return f"{v:.3g}" if abs(v) < 100 else f"{v:.0f}"
@@ -159,6 +205,12 @@ def main() -> None:
         default="auto",
         choices=["auto", "on"],
         help="visibility and indirect light in the full model: as stage II decides, or on",
+    )
+    parser.add_argument(
+        "--light",
+        default="learnt",
+        choices=["learnt", "truth"],
+        help="stage II learns the light, or holds it at the truth's",
     )
     parser.add_argument("--work", type=Path, help="keep the runs in this folder (default: none)")
     args = parser.parse_args()
@@ -196,16 +248,17 @@ def main() -> None:
                     continue  # the full model left it out already on this scene
                 out = Path(tmp) / f"{scene}-{name.replace(' ', '-')}"
                 shutil.copytree(base, out)
-                result = reconstruct(
-                    session,
-                    out,
-                    preset=args.preset,
-                    device=args.device,
-                    stage="material",
-                    material_iterations=args.material_iterations,
-                    overwrite=True,
-                    **{**forced, **settings},
-                )
+                with truth_light(scene) if args.light == "truth" else nullcontext():
+                    result = reconstruct(
+                        session,
+                        out,
+                        preset=args.preset,
+                        device=args.device,
+                        stage="material",
+                        material_iterations=args.material_iterations,
+                        overwrite=True,
+                        **{**forced, **settings},
+                    )
                 if name == "full":
                     full_effects = result.effects
                 on = ",".join(k for k, v in result.effects.items() if v)
@@ -227,6 +280,8 @@ def main() -> None:
         name += "_truth_geometry"
     if args.effects == "on":
         name += "_effects_on"
+    if args.light == "truth":
+        name += "_truth_light"
     (RESULTS / f"{name}.json").write_text(
         json.dumps(
             {
@@ -235,6 +290,7 @@ def main() -> None:
                 "preset": args.preset,
                 "geometry": args.geometry,
                 "effects": args.effects,
+                "light": args.light,
                 "stage_one": stage_one,
                 "runs": rows,
                 "published": PUBLISHED,
