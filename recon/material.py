@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from evcap.edge_maps import edge_map
-from evcap.errors import NumericalError
+from evcap.errors import InputError, NumericalError
 from evcap.recon.config import Ablation, Backend, EffectMode, MaterialConfig, RadianceConfig
 from evcap.recon.gaussians import Background, Gaussians
 from evcap.recon.losses import anchor_loss
@@ -344,7 +344,14 @@ def train_material(
     radiance.requires_grad_(False)
     field = new_material_field(radiance, data, config)
     if resume is not None:
-        field.load_state_dict(resume["material"])
+        try:
+            field.load_state_dict(resume["material"])
+        except RuntimeError as e:  # saved by an evcap whose stage II held other arrays
+            found = " ".join(str(e).split())
+            raise InputError(
+                f"the saved stage-II state does not fit this version of evcap ({found}); "
+                "pass --force to start stage II over"
+            ) from e
     frames_all = edge_frames(data, config.edge_frames)
     edges = edge_maps(session, data, frames_all, config.edge_slice_ms, device)
     weights = {f: torch.exp(-config.edge_beta * m) for f, m in edges.items()}

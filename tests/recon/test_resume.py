@@ -2,6 +2,7 @@
 
 import json
 import os
+import shutil
 import signal
 
 import pytest
@@ -89,6 +90,22 @@ def test_stage_two_goes_on_without_running_stage_one_again(session, uninterrupte
         torch.testing.assert_close(material(tmp_path)[name], value)
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["base_color_psnr_cc"] == pytest.approx(expected.figures.base_color_psnr_cc)
+
+
+def test_a_stage_two_state_that_does_not_fit_is_refused_by_name(session, uninterrupted, tmp_path):
+    """A state saved by an evcap whose stage II held other arrays (before the visibility was
+    baked per direction) names the problem and the way out, not a PyTorch traceback."""
+    whole, _ = uninterrupted
+    (tmp_path / "checkpoint").mkdir()
+    shutil.copy(whole / "checkpoint" / "radiance.pt", tmp_path / "checkpoint" / "radiance.pt")
+    run = {**RUN, "stage": "material", "visibility": "on"}
+    reconstruct(session, tmp_path, **run, progress=interrupt_at(3, "material"))
+    path = state_path(tmp_path, "material")
+    state = torch.load(path, weights_only=True)
+    state["material"]["visibility_sh"] = state["material"].pop("visibility")
+    torch.save(state, path)
+    with pytest.raises(InputError, match="does not fit this version.*--force"):
+        reconstruct(session, tmp_path, **run)
 
 
 def test_other_settings_are_refused_or_started_over(session, tmp_path):
