@@ -1,8 +1,9 @@
 """Visibility of the environment from each Gaussian, baked once from the frozen stage-I
 geometry in the shading's own directions, used by stage II when the scene has occluders.
 
-One shadow map per direction: the opaque Gaussians are splatted as discs onto a plane across
-that direction, each pixel keeping the occluder nearest the light; a Gaussian sees the light
+One shadow map per direction: the opaque Gaussians are splatted onto a plane across that
+direction as the ellipses they cover seen along it, each pixel keeping the occluder nearest the
+light; a Gaussian sees the light
 from that direction where nothing in the map lies in front of it. The point tested is lifted
 off its own surface along its normal (to the side the ray leaves by) by one and a half splat
 radii: a plane's own discs then stay behind it at every elevation, down to the horizon.
@@ -28,11 +29,11 @@ from evcap.recon.gaussians import Gaussians
 from evcap.recon.rasterize import quat_to_rotmat
 
 OCCLUDER = 0.5  # Gaussians at least this opaque block the light
-SPLAT_SIGMAS = 2.0  # an occluder's disc reaches this many of its largest scale
+SPLAT_SIGMAS = 2.0  # an occluder's footprint reaches this many sigmas
 LIFT = 1.5  # splat radii a tested point is lifted off its surface
 PIXELS_PER_RADIUS = 2.0  # the map's pixel: half the median occluder's radius
 MAX_MAP = 2048  # pixels along a side of a shadow map
-MAX_SPLAT = 8  # pixels of the widest disc (wider ones are splatted at this radius)
+MAX_SPLAT = 8  # pixels of the widest footprint (wider ones are cut to this radius)
 
 
 @torch.no_grad()
