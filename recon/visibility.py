@@ -3,10 +3,10 @@ geometry in the shading's own directions, used by stage II when the scene has oc
 
 One shadow map per direction: the opaque Gaussians are splatted onto a plane across that
 direction as the ellipses they cover seen along it, each pixel keeping the occluder nearest the
-light; a Gaussian sees the light
-from that direction where nothing in the map lies in front of it. The point tested is lifted
-off its own surface along its normal (to the side the ray leaves by) by one and a half splat
-radii: a plane's own discs then stay behind it at every elevation, down to the horizon.
+light; a Gaussian sees the light from that direction where nothing in the map lies in front of
+it. The point tested is lifted off its own surface along its normal (to the side the ray leaves
+by) by one and a half splat radii: a plane's own footprints then stay behind it at every
+elevation, down to the horizon.
 
 Why shadow maps and not rays marched through a grid, and one value per direction and not
 spherical harmonics: a grid fine enough not to swallow the gap under a sphere resting on a
