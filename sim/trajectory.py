@@ -17,16 +17,17 @@ UP = np.array([0.0, 0.0, 1.0])
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = UP) -> np.ndarray:
-    """The rotation (camera-to-world, columns = camera x, y, z in the world) of a camera at
-    ``eye`` looking at ``target`` with its image upright."""
+    """The rotations [..., 3, 3] (camera-to-world, columns = camera x, y, z in the world) of
+    cameras at ``eye`` [..., 3] looking at ``target`` with their image upright."""
     forward = target - eye
-    forward = forward / np.linalg.norm(forward)
+    forward = forward / np.linalg.norm(forward, axis=-1, keepdims=True)
     right = np.cross(forward, up)
-    if np.linalg.norm(right) < 1e-9:  # looking straight up or down: any right will do
-        right = np.cross(forward, np.array([1.0, 0.0, 0.0]))
-    right = right / np.linalg.norm(right)
+    # looking straight up or down: any right will do
+    straight = np.linalg.norm(right, axis=-1, keepdims=True) < 1e-9
+    right = np.where(straight, np.cross(forward, np.array([1.0, 0.0, 0.0])), right)
+    right = right / np.linalg.norm(right, axis=-1, keepdims=True)
     down = np.cross(forward, right)
-    return np.stack([right, down, forward], axis=1)
+    return np.stack([right, down, forward], axis=-1)
 
 
 def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
@@ -75,52 +76,52 @@ class Trajectory:
             self.position = _vec(p, "position", [2, 0, 0.5])
             self.target = _vec(p, "look_at", [0, 0, 0])
 
-    def _shake(self, t: float, k: int) -> np.ndarray:
-        return np.sin(2 * np.pi * self.freqs[k] * t + self.phases[k]).mean(axis=1)
+    def _shake(self, t: np.ndarray, k: int) -> np.ndarray:
+        """[M, 3] at times t [M]."""
+        angles = 2 * np.pi * self.freqs[k] * t[:, None, None] + self.phases[k]
+        return np.sin(angles).mean(axis=2)
 
     def pose(self, t: float) -> np.ndarray:
         """T_world_cam at time t (seconds)."""
-        T = np.eye(4)
+        return self.poses(np.array([t]))[0]
+
+    def poses(self, times_s: np.ndarray) -> np.ndarray:
+        """T_world_cam [M, 4, 4] at times [M] (seconds)."""
+        t = np.atleast_1d(np.asarray(times_s, np.float64))
+        s = (t / self.duration_s)[:, None]
         if self.kind == "orbit":
-            s = t / self.duration_s
-            a = self.start + self.sweep * s
-            z = self.height + self.height_swing * np.sin(2 * np.pi * self.swings * s)
-            eye = self.center + np.array([self.radius * np.cos(a), self.radius * np.sin(a), z])
-            T[:3, :3] = look_at(eye, self.target)
+            a = self.start + self.sweep * s[:, 0]
+            z = self.height + self.height_swing * np.sin(2 * np.pi * self.swings * s[:, 0])
+            offset = np.stack([self.radius * np.cos(a), self.radius * np.sin(a), z], axis=1)
+            eye = self.center + offset
+            r = look_at(eye, self.target)
         elif self.kind in ("handheld", "linear"):
-            s = t / self.duration_s
             eye = self.a + (self.b - self.a) * s
             r = look_at(eye, self.target)
             if self.kind == "handheld":
                 eye = eye + self.shake_units * self._shake(t, 0)
-                w = self.shake_rad * self._shake(t, 1)
-                angle = np.linalg.norm(w)
-                if angle > 0:
-                    r = r @ rotation_about(w, angle)
-            T[:3, :3] = r
+                r = r @ exp_so3(self.shake_rad * self._shake(t, 1))
         else:
-            eye = self.position
-            T[:3, :3] = look_at(eye, self.target)
-        T[:3, 3] = eye
+            eye = np.broadcast_to(self.position, (len(t), 3))
+            r = look_at(eye, self.target)
+        T = np.broadcast_to(np.eye(4), (len(t), 4, 4)).copy()
+        T[:, :3, :3] = r
+        T[:, :3, 3] = eye
         return T
-
-    def poses(self, times_s: np.ndarray) -> np.ndarray:
-        return np.stack([self.pose(float(t)) for t in np.atleast_1d(times_s)])
 
     def imu(
         self, times_s: np.ndarray, units_per_meter: float = 1.0, dt: float = 1e-4
     ) -> tuple[np.ndarray, np.ndarray]:
         """(accel [N, 3] m/s^2, gyro [N, 3] rad/s) an IMU in the camera's axes would read:
         the specific force (acceleration minus gravity) and the angular velocity."""
-        accel, gyro = [], []
-        for t in np.atleast_1d(times_s):
-            t = float(np.clip(t, dt, self.duration_s - dt)) if self.duration_s > 2 * dt else t
-            p0, p1, p2 = (self.pose(t - dt), self.pose(t), self.pose(t + dt))
-            a_world = (p2[:3, 3] - 2 * p1[:3, 3] + p0[:3, 3]) / (dt * dt) / units_per_meter
-            r = p1[:3, :3]
-            accel.append(r.T @ (a_world + GRAVITY * UP))
-            gyro.append(log_so3(p0[:3, :3].T @ p2[:3, :3]) / (2 * dt))
-        return np.array(accel), np.array(gyro)
+        t = np.atleast_1d(np.asarray(times_s, np.float64))
+        if self.duration_s > 2 * dt:
+            t = np.clip(t, dt, self.duration_s - dt)
+        p0, p1, p2 = self.poses(t - dt), self.poses(t), self.poses(t + dt)
+        a_world = (p2[:, :3, 3] - 2 * p1[:, :3, 3] + p0[:, :3, 3]) / (dt * dt) / units_per_meter
+        accel = np.einsum("nji,nj->ni", p1[:, :3, :3], a_world + GRAVITY * UP)
+        gyro = log_so3(p0[:, :3, :3].transpose(0, 2, 1) @ p2[:, :3, :3]) / (2 * dt)
+        return accel, gyro
 
     def speed_px(self, t: float, points: np.ndarray, camera, dt: float = 1e-3) -> float:
         """The largest image motion (pixels per second) of ``points`` (world) at time t."""
