@@ -53,11 +53,12 @@ def test_uniform_sky_irradiance_is_pi_and_a_smooth_mirror_reflects_f0():
 
 @SKIES
 def test_diffuse_cells_converged_below_the_sensors_noise(sky):
-    # 256 cells against 64k on the scenes' sky and on the relighting's glow from one side: the
-    # threshold's pixel-to-pixel spread is 0.03 in log intensity, so 1 % of the light is a third
+    # 256 cells against 16k on the scenes' sky and on the relighting's glow from one side: the
+    # threshold's pixel-to-pixel spread is 0.03 in log intensity, so 1 % of the light is a third.
+    # (16k cells are within 0.0005 of 64k at the 99th percentile, a twentieth of the bound.)
     env = Environment(Lighting(sky=sky))
     n = directions(1000)
-    ref, est = irradiance(env, n, 65536), irradiance(env, n, 256)
+    ref, est = irradiance(env, n, 16384), irradiance(env, n, 256)
     err = np.abs(est - ref).sum(1) / ref.sum(1)
     assert np.median(err) < 0.003 and np.quantile(err, 0.99) < 0.012
 
