@@ -170,7 +170,7 @@ class Renderer:
             for p in scene.lighting.points
         ]
         # float32 once here: specular_environment reads it in float32 (half the memory its reads
-        # wait on), and converting a large table on every call cost a quarter of a simulation
+        # wait on) and would otherwise copy the whole table on each of its thousands of calls
         self.sky_table = self.env.table().astype(np.float32)
         self._bake(progress)
 

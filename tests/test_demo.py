@@ -52,6 +52,7 @@ def test_demo_runs_resumes_and_writes_the_report(tmp_path, monkeypatch):
     assert (out / "reconstruction" / "poses.h5").exists()
     metrics = json.loads((out / "reconstruction" / "metrics.json").read_text())
     assert metrics["views"] == "held-out test views" and metrics["history"]
+    assert metrics["pbr_render_psnr_cc"] > 15  # the pipeline works (measured here: 22.4 dB)
     page = report.read_text()
     assert "http://" not in page and "https://" not in page
 
@@ -65,7 +66,6 @@ def test_the_demo_recovers_the_sphere(tmp_path):
     """The demo as a newcomer runs it (about 5 minutes here)."""
     demo.run_demo(tmp_path / "demo", preset="tiny", say=lambda line: None)
     metrics = json.loads((tmp_path / "demo" / "reconstruction" / "metrics.json").read_text())
-    assert metrics["pbr_render_psnr_cc"] > 15  # the pipeline works, even on estimated poses
     # the sphere is there, on estimated poses (measured: +2.3 dB, 23 deg, 5 %; tiny's own 150
     # steps: +0.0 dB, 53 deg, 17 %)
     assert metrics["object_psnr_cc"] > metrics["object_psnr_constant"] + 1.5
