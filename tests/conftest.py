@@ -125,11 +125,11 @@ threshold_spread = { sigma = 0.03 }
 background_activity = { rate_hz = 0.2 }
 hot_pixels = { count = 8, rate_hz = 300.0 }
 refractory = { period_us = 100 }"""
-# the board's shading is not graded: 4 x 4 specular samples per pixel, not 12 x 12, make the
-# fixture's simulation several times faster
+# the board's shading is not graded: one specular sample per pixel, not 12 x 12, makes the
+# fixture's simulation several times faster (from 4 x 4: 110 -> 69 s, the tests unchanged)
 BOARD_LIGHT = (
     'environment = "sky"\nsky = { zenith = [0.8, 0.8, 0.8], horizon = [0.8, 0.8, 0.8], '
-    "ground = [0.6, 0.6, 0.6] }\nspecular_side = 4"
+    "ground = [0.6, 0.6, 0.6] }\nspecular_side = 1"
 )
 
 
