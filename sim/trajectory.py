@@ -88,15 +88,15 @@ class Trajectory:
     def poses(self, times_s: np.ndarray) -> np.ndarray:
         """T_world_cam [M, 4, 4] at times [M] (seconds)."""
         t = np.atleast_1d(np.asarray(times_s, np.float64))
-        s = (t / self.duration_s)[:, None]
+        s = t / self.duration_s
         if self.kind == "orbit":
-            a = self.start + self.sweep * s[:, 0]
-            z = self.height + self.height_swing * np.sin(2 * np.pi * self.swings * s[:, 0])
+            a = self.start + self.sweep * s
+            z = self.height + self.height_swing * np.sin(2 * np.pi * self.swings * s)
             offset = np.stack([self.radius * np.cos(a), self.radius * np.sin(a), z], axis=1)
             eye = self.center + offset
             r = look_at(eye, self.target)
         elif self.kind in ("handheld", "linear"):
-            eye = self.a + (self.b - self.a) * s
+            eye = self.a + (self.b - self.a) * s[:, None]
             r = look_at(eye, self.target)
             if self.kind == "handheld":
                 eye = eye + self.shake_units * self._shake(t, 0)
