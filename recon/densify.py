@@ -24,10 +24,10 @@ class Densifier:
         self.grad_sum = torch.zeros(0)
         self.count = torch.zeros(0)
 
-    def _fit(self, n: int) -> None:
-        if len(self.grad_sum) != n:
-            self.grad_sum = torch.zeros(n)
-            self.count = torch.zeros(n)
+    def _fit(self, n: int, device: torch.device) -> None:
+        if len(self.grad_sum) != n or self.grad_sum.device != device:
+            self.grad_sum = torch.zeros(n, device=device)
+            self.count = torch.zeros(n, device=device)
 
     @torch.no_grad()
     def observe(self, render: Render, width: int, height: int) -> None:
@@ -35,9 +35,9 @@ class Densifier:
         g = render.means2d.grad
         if g is None:
             return
-        g = g.reshape(-1, 2).detach().cpu() * torch.tensor([width / 2, height / 2])
-        self._fit(len(g))
-        vis = render.visible.cpu()
+        g = g.reshape(-1, 2).detach() * torch.tensor([width / 2, height / 2], device=g.device)
+        self._fit(len(g), g.device)
+        vis = render.visible
         self.grad_sum[vis] += g[vis].norm(dim=1)
         self.count[vis] += 1
 
@@ -53,7 +53,8 @@ class Densifier:
     def densify(self, model: Gaussians, optimizer: torch.optim.Optimizer) -> dict[str, int]:
         c = self.config
         n = len(model)
-        self._fit(n)
+        device = model.means.device
+        self._fit(n, device)
         grad = self.grad_sum / self.count.clamp(min=1)
         hot = grad >= c.grad_threshold
         big = model.scales.max(1).values > c.percent_dense * self.extent
@@ -76,7 +77,7 @@ class Densifier:
             part["log_scales"] = part["log_scales"] - math.log(1.6)
             new = {k: torch.cat([new[k], part[k]]) for k in PARAMS}
         _append(model, optimizer, new)
-        keep = torch.ones(len(model), dtype=torch.bool)
+        keep = torch.ones(len(model), dtype=torch.bool, device=device)
         keep[split] = False
         keep &= model.opacities >= c.min_opacity
         keep &= model.scales.max(1).values <= self.extent  # none larger than the scene
@@ -87,8 +88,8 @@ class Densifier:
             keep &= (model.means.detach() - center).norm(dim=1) <= c.confine * v.radius
         pruned = int((~keep).sum()) - len(split)
         _select(model, optimizer, keep)
-        self.grad_sum = torch.zeros(len(model))
-        self.count = torch.zeros(len(model))
+        self.grad_sum = torch.zeros(len(model), device=device)
+        self.count = torch.zeros(len(model), device=device)
         return {"cloned": len(clone), "split": len(split), "pruned": pruned}
 
     @torch.no_grad()

@@ -28,24 +28,24 @@ def write_ply(field: RadianceField, path: Path) -> None:
     the higher bands scaled by the slope of that mapping there (first order)."""
     g = field.gaussians
     with torch.no_grad():
-        v0 = (C0 * g.sh_dc[:, 0]).double()
+        v0 = (C0 * g.sh_dc[:, 0]).double().cpu()
         lin = torch.nn.functional.softplus(v0).clamp(0, 1)
         disp = torch.from_numpy(srgb(lin.numpy()))
         # d display / d v = srgb'(linear) * sigmoid(v)
         eps = 1e-4
         slope = (torch.from_numpy(srgb((lin + eps).numpy())) - disp) / eps * torch.sigmoid(v0)
         f_dc = (disp - 0.5) / C0
-        rest = g.sh_rest.double() * slope[:, None, :]
+        rest = g.sh_rest.double().cpu() * slope[:, None, :]
         cols = [
-            g.means.double(),
+            g.means.double().cpu(),
             torch.zeros(len(g), 3, dtype=torch.float64),
             f_dc,
             rest.transpose(1, 2).reshape(len(g), -1),  # all of red, then green, then blue
-            g.opacity_logits.double()[:, None],
-            g.log_scales.double(),
-            torch.nn.functional.normalize(g.quats.double(), dim=1),
+            g.opacity_logits.double().cpu()[:, None],
+            g.log_scales.double().cpu(),
+            torch.nn.functional.normalize(g.quats.double().cpu(), dim=1),
         ]
-        data = torch.cat(cols, 1).float().cpu().numpy()
+        data = torch.cat(cols, 1).float().numpy()
     names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
     names += [f"f_rest_{i}" for i in range(rest.shape[1] * 3)]
     names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]

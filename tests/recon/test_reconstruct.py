@@ -193,6 +193,34 @@ def test_material_stage_resumes_from_the_checkpoint(color_session, color_result,
         reconstruct(color_session, tmp_path / "empty", preset="tiny", stage="material")
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+@pytest.mark.parametrize("backend", ["torch", "gsplat"])
+def test_both_stages_run_on_a_cuda_gpu(color_session, environment, tmp_path, backend):
+    # on a GPU, the densification's statistics and the PLY export once took CPU tensors
+    if backend == "gsplat":
+        from evcap.recon import _raster_gsplat
+
+        if not _raster_gsplat.available():
+            pytest.skip("gsplat is not installed or cannot build its kernels")
+    result = reconstruct(
+        color_session,
+        tmp_path,
+        preset="tiny",
+        device="cuda",
+        backend=backend,
+        resolution=1.0,
+        iterations=30,
+        material_iterations=8,
+        radiance_settings={"densify_every": 10},
+        relight=environment,
+    )
+    assert (result.device, result.backend) == ("cuda", backend)
+    assert read_ply_header(tmp_path / "gaussians.ply")[0] == result.gaussians
+    assert np.isfinite(result.figures.object_psnr_cc)
+    assert np.isfinite(result.figures.base_color_psnr_cc)
+    assert len(list((tmp_path / "renders" / "relit").glob("test_*.png"))) > 0
+
+
 def test_ply_is_the_common_3dgs_layout(color_result):
     out, result = color_result
     count, names = read_ply_header(out / "gaussians.ply")

@@ -1,0 +1,85 @@
+"""The reconstruction on a CUDA GPU: both stages of one session with each rasterizer backend
+(gsplat's CUDA kernels, the torch reference on the GPU) beside the compiled CPU backend on the
+same machine, each from scratch with the same preset and seed: the wall time of each stage and
+the figures against the session's truth, so that the CUDA path is shown to work and to score
+as the CPU one does.
+
+    python bench/gpu.py SESSION.h5 [--preset tiny] [--backends gsplat torch cpu]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from _common import report
+
+from evcap.recon.reconstruct import reconstruct
+
+FIGURES = (
+    "object_psnr_cc",
+    "object_psnr_constant",
+    "radiance_normal_mae_deg",
+    "normal_mae_deg",
+    "depth_rel_err",
+    "base_color_psnr_cc",
+    "pbr_render_psnr_cc",
+)
+
+STARTED = time.perf_counter()
+
+
+def progress(step: int, total: int, text: str) -> None:
+    if step % 100 == 0 or step == total:
+        elapsed = time.perf_counter() - STARTED
+        print(f"  {elapsed:6.0f} s: step {step} of {total}: {text}", flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("session", type=Path)
+    parser.add_argument("--preset", default="tiny")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--backends", nargs="+", default=["gsplat", "torch", "cpu"])
+    parser.add_argument("--iterations", type=int, help="stage I's steps (default: the preset's)")
+    args = parser.parse_args()
+    if not torch.cuda.is_available():
+        raise SystemExit("no CUDA GPU visible to PyTorch here: this benchmark is for one")
+    figures: dict = {"gpu": torch.cuda.get_device_name(), "preset": args.preset}
+    for backend in args.backends:
+        device = "cpu" if backend == "cpu" else "cuda"
+        with tempfile.TemporaryDirectory() as out:
+            seconds = {}
+            for stage in ("radiance", "material"):
+                start = time.perf_counter()
+                result = reconstruct(
+                    args.session,
+                    out,
+                    preset=args.preset,
+                    stage=stage,
+                    device=device,
+                    backend=backend,
+                    seed=args.seed,
+                    iterations=args.iterations,
+                    progress=progress,
+                )
+                seconds[stage] = time.perf_counter() - start
+            measured = result.figures.measured()
+        figures[f"{backend}_stage_1_s"] = seconds["radiance"]
+        figures[f"{backend}_stage_2_s"] = seconds["material"]
+        for name in FIGURES:
+            if name in measured:
+                figures[f"{backend}_{name}"] = measured[name]
+        print(
+            f"{backend} done: stage I {seconds['radiance']:.0f} s, stage II "
+            f"{seconds['material']:.0f} s",
+            flush=True,
+        )
+    report(f"gpu_{args.preset}", figures)
+
+
+if __name__ == "__main__":
+    main()
