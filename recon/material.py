@@ -43,12 +43,13 @@ from evcap.recon.shading import (
     MIN_ROUGHNESS,
     cube_directions,
     cube_lookup,
+    diffuse_both_sides,
     fibonacci_directions,
     mip_chain,
     open_irradiance,
     shade,
 )
-from evcap.recon.visibility import bake_visibility
+from evcap.recon.visibility import Bounce, bake_occlusion
 from evcap.session import Session
 
 # the channels of a stage-II render, in order
@@ -98,6 +99,7 @@ class MaterialField(torch.nn.Module):
         visibility: torch.Tensor | None,
         indirect: bool,
         backend: Backend = "cpu",
+        bounce: Bounce | None = None,
     ) -> None:
         super().__init__()
         self.gaussians = gaussians.requires_grad_(False)
@@ -109,6 +111,9 @@ class MaterialField(torch.nn.Module):
         self.indirect_sh = torch.nn.Parameter(torch.full((n, 4, 3), -8.0)) if indirect else None
         self.register_buffer("directions", fibonacci_directions(DIFFUSE_DIRECTIONS))
         self.register_buffer("visibility", visibility)  # [N, K] at the directions, or None
+        # who sees whom where the light is blocked (Bounce), or None
+        for name in ("receivers", "sources", "weights"):
+            self.register_buffer(f"bounce_{name}", getattr(bounce, name, None))
         self.backend = backend
 
     @property
@@ -117,6 +122,12 @@ class MaterialField(torch.nn.Module):
             "visibility": self.visibility is not None,
             "indirect": self.indirect_sh is not None,
         }
+
+    @property
+    def bounce(self) -> Bounce | None:
+        if self.bounce_receivers is None:
+            return None
+        return Bounce(self.bounce_receivers, self.bounce_sources, self.bounce_weights)
 
     @property
     def base_color(self) -> torch.Tensor:
@@ -140,8 +151,22 @@ class MaterialField(torch.nn.Module):
             if light is not None:  # relit: see relit_indirect
                 indirect = relit_indirect(indirect, learnt, light, n, self.directions)
         light = learnt if light is None else light
+        bounced = None
+        if self.bounce is not None and vis is not None:
+            leaving = diffuse_both_sides(
+                self.base_color, F.normalize(self.normals, dim=1), light, self.directions, vis
+            )
+            bounced = self.bounce.irradiance(leaving, len(g))
         color = shade(
-            self.base_color, self.roughness, n, view, light, self.directions, vis, indirect
+            self.base_color,
+            self.roughness,
+            n,
+            view,
+            light,
+            self.directions,
+            vis,
+            indirect,
+            bounced,
         )
         return color, n
 
@@ -177,7 +202,8 @@ def new_material_field(
     radiance: RadianceField, data: TrainingData, config: MaterialConfig
 ) -> MaterialField:
     """Stage II's start: normals from the plane of each Gaussian's neighbours (facing the
-    cameras), visibility baked when the scene has occluders, base color such that the diffuse
+    cameras), visibility baked when the scene has occluders (and, with indirect light, which
+    surface each Gaussian sees where its light is blocked), base color such that the diffuse
     shading under the stage-I background as light gives the stage-I radiance."""
     g = radiance.gaussians
     light = Background.from_faces(radiance.background.faces.data.cpu())
@@ -194,9 +220,12 @@ def new_material_field(
         )
     occluded = modelled(config.visibility, lambda: has_occluders(g, data, radiance.backend))
     directions = fibonacci_directions(DIFFUSE_DIRECTIONS).to(g.means.device)
-    visibility = bake_visibility(g, normals, directions) if occluded else None
     indirect = modelled(config.indirect, lambda: occluded)
-    field = MaterialField(g, light, normals.cpu(), visibility, indirect, radiance.backend)
+    visibility, bounce = None, None
+    if occluded:
+        baked = bake_occlusion(g, normals, directions, bounce=indirect)
+        visibility, bounce = baked.visibility, baked.bounce
+    field = MaterialField(g, light, normals.cpu(), visibility, indirect, radiance.backend, bounce)
     field = field.to(g.means.device)
     with torch.no_grad():
         target = g.radiance(cams, 0)

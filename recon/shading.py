@@ -146,17 +146,19 @@ def shade(
     directions: torch.Tensor,
     visibility: torch.Tensor | None = None,
     indirect: torch.Tensor | None = None,
+    bounce: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Outgoing radiance [N, 3] of points with base color [N, 3], roughness [N], unit normals
     [N, 3] facing the viewer and unit directions to the viewer ``view`` [N, 3], under the light
     ``light`` (mip_chain of the environment's radiance):
 
-        diffuse  = base / pi * sum_k L(w_k) V(w_k) max(n.w_k, 0) 4 pi / K   (+ indirect)
+        diffuse  = base / pi * sum_k L(w_k) V(w_k) max(n.w_k, 0) 4 pi / K   (+ indirect, bounce)
         specular = prefiltered(reflect(v, n), roughness) (F0 A + B) * (cos-weighted V)
 
     ``visibility`` [N, K] in [0, 1] at ``directions`` [K, 3] (None: nothing blocks the light);
     ``indirect`` [N, 3] irradiance from other surfaces, added to the diffuse light in the share
-    of the hemisphere that the visibility says is blocked."""
+    of the hemisphere that the visibility says is blocked; ``bounce`` [N, 3] irradiance from
+    the surfaces that block it, added as it is."""
     sky = _coarse_sky(light, directions)  # [K, 3]
     cos = (normals @ directions.T).clamp(min=0)  # [N, K]
     weight = 4 * math.pi / len(directions)
@@ -168,10 +170,30 @@ def shade(
     irradiance = open_cos @ sky * weight
     if indirect is not None:
         irradiance = irradiance + indirect * (1 - spec_vis)[:, None]
+    if bounce is not None:
+        irradiance = irradiance + bounce
     ndv = (normals * view).sum(1).clamp(1e-4, 1)
     reflected = F.normalize(2 * ndv[:, None] * normals - view, dim=1)
     specular = prefiltered(light, reflected, roughness) * split_sum(ndv, roughness)[:, None]
     return base_color / math.pi * irradiance + specular * spec_vis[:, None]
+
+
+def diffuse_both_sides(
+    base_color: torch.Tensor,
+    normals: torch.Tensor,
+    light: list[torch.Tensor],
+    directions: torch.Tensor,
+    visibility: torch.Tensor,
+) -> torch.Tensor:
+    """[2N, 3] the diffuse radiance leaving each surface (base color [N, 3], unit normals
+    [N, 3]) from its front (row 2 i: the side its normal points to) and its back (2 i + 1),
+    lit by the light where ``visibility`` [N, K] lets it through."""
+    sky = _coarse_sky(light, directions)
+    cos = normals @ directions.T
+    weight = 4 * math.pi / len(directions)
+    front = (cos.clamp(min=0) * visibility) @ sky * weight
+    back = ((-cos).clamp(min=0) * visibility) @ sky * weight
+    return (base_color[:, None] / math.pi * torch.stack([front, back], 1)).reshape(-1, 3)
 
 
 def open_irradiance(

@@ -21,6 +21,7 @@ the truth lets through 55 %, these maps 44 %.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -36,6 +37,29 @@ MAX_MAP = 2048  # pixels along a side of a shadow map
 MAX_SPLAT = 8  # pixels of the widest footprint (wider ones are cut to this radius)
 
 
+@dataclass
+class Bounce:
+    """Which surface each Gaussian sees where its light is blocked, as a sparse [N, 2N] matrix:
+    the irradiance arriving from the blocking surfaces is sum over the entries of
+    ``weight * radiance[source]``, ``radiance`` [2N, 3] being each Gaussian's outgoing diffuse
+    radiance from its front (2 j, along its normal) and its back (2 j + 1)."""
+
+    receivers: torch.Tensor  # [M] int64
+    sources: torch.Tensor  # [M] int64, 2 j or 2 j + 1
+    weights: torch.Tensor  # [M] blocked share x cosine x solid angle of the directions
+
+    def irradiance(self, radiance: torch.Tensor, n: int) -> torch.Tensor:
+        """[n, 3] irradiance from the blocking surfaces, given their radiance [2n, 3]."""
+        out = radiance.new_zeros(n, radiance.shape[1])
+        return out.index_add(0, self.receivers, self.weights[:, None] * radiance[self.sources])
+
+
+@dataclass
+class Occlusion:
+    visibility: torch.Tensor  # [N, K] float16 in [0, 1]
+    bounce: Bounce | None
+
+
 @torch.no_grad()
 def bake_visibility(
     gaussians: Gaussians, normals: torch.Tensor, directions: torch.Tensor
@@ -43,20 +67,31 @@ def bake_visibility(
     """[N, K] visibility in [0, 1] of each Gaussian in the unit ``directions`` [K, 3] (1: the
     light from there arrives), for surfaces with unit normals [N, 3] (either side), as float16.
     """
+    return bake_occlusion(gaussians, normals, directions).visibility
+
+
+@torch.no_grad()
+def bake_occlusion(
+    gaussians: Gaussians, normals: torch.Tensor, directions: torch.Tensor, bounce: bool = False
+) -> Occlusion:
+    """The visibility (see bake_visibility) and, with ``bounce``, the first opaque Gaussian
+    each one meets along each blocked direction: the one nearest to it in the shadow map's
+    pixel, of those nearer the light than it (one bounce of light off the geometry)."""
     means = gaussians.means.detach()
     device = means.device
     out = torch.ones(len(means), len(directions), dtype=torch.float16, device=device)
     radius = SPLAT_SIGMAS * gaussians.scales.detach().max(1).values
     solid = gaussians.opacities.detach() > OCCLUDER
     if solid.sum() < 2:
-        return out
+        return Occlusion(out, _no_bounce(device) if bounce else None)
     # occluders within the bulk of the opaque points: far stragglers (the backdrop's stand-ins)
     # would shadow everything
     lo = torch.quantile(means[solid], 0.005, dim=0)
     hi = torch.quantile(means[solid], 0.995, dim=0)
     solid &= ((means >= lo) & (means <= hi)).all(1)
     if solid.sum() < 2:
-        return out
+        return Occlusion(out, _no_bounce(device) if bounce else None)
+    solid_index = torch.nonzero(solid).squeeze(1)
     typical = float(radius[solid].median())
     size = float((hi - lo).norm()) + 4 * typical
     pixel = max(typical / PIXELS_PER_RADIUS, size / MAX_MAP)
@@ -69,6 +104,8 @@ def bake_visibility(
     offsets = _disc_offsets(MAX_SPLAT, device)
     offset_reach = offsets.float().norm(dim=1)
     limit = SPLAT_SIGMAS**2
+    solid_angle = 4 * math.pi / len(directions)
+    entries = []
     for j, d in enumerate(directions.to(device)):
         across = torch.stack(_across(d))  # [2, 3]
         # each occluder's footprint on the map: its covariance seen along d, at least a pixel
@@ -95,15 +132,61 @@ def bake_visibility(
         e0, e1 = (x - px[m, 0]) * pixel, (y - px[m, 1]) * pixel
         within = (c[m] * e0 * e0 - 2 * b[m] * e0 * e1 + a[m] * e1 * e1) <= limit * det[m]
         keep = within & (x >= 0) & (x < side_px) & (y >= 0) & (y < side_px)
+        cells, heights = (y * side_px + x)[keep], depth[m][keep]
         shadow = torch.full((side_px * side_px,), -math.inf, device=device)
-        shadow.scatter_reduce_(0, (y * side_px + x)[keep], depth[m][keep], "amax")
+        shadow.scatter_reduce_(0, cells, heights, "amax")
         shadow = shadow.reshape(side_px, side_px)
         # each Gaussian, lifted to the side of its surface the ray leaves by
         sign = torch.where(normals @ d < 0, -1.0, 1.0)[:, None]
         p = means - centre + lift[:, None] * sign * normals
         q = p @ across.T / pixel + side_px / 2
         out[:, j] = _open_share(shadow, q, p @ d + pixel).to(torch.float16)
-    return out
+        if bounce:
+            hit = _first_hit(cells, heights, side_px, q, p @ d + pixel)
+            found = hit >= 0
+            blocked = 1 - out[:, j].float()
+            cos = (normals @ d).clamp(min=0)
+            weight = blocked * cos * solid_angle
+            receivers = torch.nonzero(found & (weight > 0)).squeeze(1)
+            source = solid_index[order[m[keep]][hit[receivers]]]
+            # the side of the source's surface that faces the receiver
+            back = (normals[source] @ d > 0).long()
+            entries.append((receivers, 2 * source + back, weight[receivers]))
+    if not bounce:
+        return Occlusion(out, None)
+    if not entries:
+        return Occlusion(out, _no_bounce(device))
+    receivers, sources, weights = (torch.cat(t) for t in zip(*entries, strict=True))
+    # one entry per (receiver, source): the directions that meet the same source summed
+    pair, inverse = torch.unique(receivers * (2 * len(means)) + sources, return_inverse=True)
+    summed = torch.zeros(len(pair), device=device).index_add(0, inverse, weights)
+    return Occlusion(out, Bounce(pair // (2 * len(means)), pair % (2 * len(means)), summed))
+
+
+def _no_bounce(device: torch.device) -> Bounce:
+    empty = torch.zeros(0, dtype=torch.long, device=device)
+    return Bounce(empty, empty, torch.zeros(0, device=device))
+
+
+def _first_hit(
+    cells: torch.Tensor, heights: torch.Tensor, side: int, q: torch.Tensor, depth: torch.Tensor
+) -> torch.Tensor:
+    """For each point ``q`` [N, 2] (pixel coordinates) at ``depth`` [N], the index into the
+    splatted (``cells``, ``heights``) pairs of the lowest one above it in its pixel; -1 where
+    none is."""
+    low, high = float(heights.min()), float(heights.max())
+    span = (high - low) * (1 + 1e-6) + 1e-12
+    # one sorted key: the pixel, then the height within it as a fraction in [0, 1)
+    keys = cells.double() + (heights.double() - low) / span
+    keys, order = torch.sort(keys)
+    base = q.round().long()
+    inside = (base >= 0).all(1) & (base < side).all(1)
+    cell = (base[:, 1] * side + base[:, 0]).clamp(0, side * side - 1)
+    above = ((depth.double() - low) / span).clamp(0, 1 - 1e-9)
+    t = torch.searchsorted(keys, cell.double() + above, right=True)
+    t_safe = t.clamp(max=len(keys) - 1)
+    same = (t < len(keys)) & (keys[t_safe].floor().long() == cell) & inside
+    return torch.where(same, order[t_safe], torch.full_like(t, -1))
 
 
 def _covariances(gaussians: Gaussians) -> torch.Tensor:

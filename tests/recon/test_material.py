@@ -19,7 +19,7 @@ from evcap.recon.shading import (
     mip_chain,
     shade,
 )
-from evcap.recon.visibility import bake_visibility
+from evcap.recon.visibility import bake_occlusion, bake_visibility
 from evcap.session import Session
 
 
@@ -142,6 +142,55 @@ def test_a_floor_beside_a_resting_sphere_sees_what_the_sphere_leaves_open():
     error = np.abs(baked[near][:, up] - exact[:, up])
     assert exact[:, up].mean() < 0.9  # the ball hides a good part of the sky there
     assert error.mean() < 0.05
+
+
+def test_the_light_a_roof_blocks_is_found_coming_off_its_underside():
+    """Under a roof, every blocked direction meets the roof: the cosine-weighted sky left open
+    and the bounce's weights make up the whole hemisphere (pi), and the light comes off the
+    roof's underside (the back of its upward normals)."""
+    g = plane_and_point(0.0)
+    dirs = fibonacci_directions(256)
+    baked = bake_occlusion(g, UP.repeat(len(g), 1), dirs, bounce=True)
+    point = len(g) - 1
+    mine = baked.bounce.receivers == point
+    cos = (dirs @ UP[0]).clamp(min=0)
+    open_sky = float((baked.visibility[point].float() * cos).sum()) * 4 * math.pi / len(dirs)
+    blocked = float(baked.bounce.weights[mine].sum())
+    assert blocked > 1.5  # most of its sky is the roof
+    assert open_sky + blocked == pytest.approx(math.pi, rel=0.05)
+    assert bool((baked.bounce.sources[mine] % 2 == 1).all())  # the back sides
+    assert (baked.bounce.sources[mine] // 2 < point).all()  # the roof's Gaussians
+    # the roof sees nothing above it that blocks its light
+    assert not (baked.bounce.receivers < point).any()
+
+
+def test_a_red_roof_bleeds_red_onto_what_lies_under_it():
+    """The diffuse light leaving the roof's underside (its base color times the light from
+    below) arrives at the white point under it, weighted as the bake says."""
+    from evcap.recon.gaussians import Background
+
+    g = plane_and_point(0.0)
+    up = UP.repeat(len(g), 1)
+    dirs = fibonacci_directions(material.DIFFUSE_DIRECTIONS)
+    baked = bake_occlusion(g, up, dirs, bounce=True)
+    light = Background.from_faces(torch.full((6, 3, 8, 8), 0.5413))  # softplus: radiance 1
+    field = material.MaterialField(
+        g, light, up, baked.visibility, indirect=False, bounce=baked.bounce
+    )
+    center = torch.tensor([0.0, 0.0, -2.0])
+    colors = {}
+    for name, roof in (("black", [-12.0, -12.0, -12.0]), ("red", [1.386, -1.386, -1.386])):
+        with torch.no_grad():
+            field.base_logits.fill_(12.0)  # white
+            field.base_logits[:-1] = torch.tensor(roof)  # red: 0.8, 0.2, 0.2
+            colors[name], _ = field.shaded(center)
+    gained = (colors["red"] - colors["black"])[-1]
+    # under a light of radiance 1 the underside leaves base / pi * pi = base: the point gains
+    # base_point / pi * (the blocked share's weight) * roof's base color
+    mine = baked.bounce.receivers == len(g) - 1
+    blocked = float(baked.bounce.weights[mine].sum())
+    expected = torch.tensor([0.8, 0.2, 0.2]) * blocked / math.pi
+    assert gained.numpy() == pytest.approx(expected.numpy(), rel=0.1)
 
 
 def test_visibility_of_nothing_is_open():
