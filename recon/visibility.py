@@ -16,6 +16,11 @@ multi-object scene's true surfaces (20,000 discs) against rays cast on its meshe
 direction the grid's bake was off by 0.13 on average, these maps by 0.025; on the floor 0.3 to
 0.45 m from the big sphere's axis the grid let through 10 % of the cosine-weighted sky where
 the truth lets through 55 %, these maps 44 %.
+
+With indirect light the same maps give one bounce: in each direction's map, the splat each
+tested point meets first (the lowest above it in its pixel) is the surface that sends it light
+from there. The pairs are kept as a sparse matrix, and stage II computes the light leaving
+those surfaces at each step, so the bounce follows their learnt base color and the light.
 """
 
 from __future__ import annotations
@@ -174,6 +179,8 @@ def _first_hit(
     """For each point ``q`` [N, 2] (pixel coordinates) at ``depth`` [N], the index into the
     splatted (``cells``, ``heights``) pairs of the lowest one above it in its pixel; -1 where
     none is."""
+    if len(heights) == 0:
+        return torch.full((len(q),), -1, dtype=torch.long, device=q.device)
     low, high = float(heights.min()), float(heights.max())
     span = (high - low) * (1 + 1e-6) + 1e-12
     # one sorted key: the pixel, then the height within it as a fraction in [0, 1)
