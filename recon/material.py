@@ -45,8 +45,8 @@ from evcap.recon.shading import (
     cube_lookup,
     diffuse_both_sides,
     fibonacci_directions,
+    irradiance,
     mip_chain,
-    open_irradiance,
     shade,
 )
 from evcap.recon.visibility import Bounce, bake_occlusion
@@ -80,8 +80,8 @@ def relit_indirect(
     lit by the learnt light, so it changes as the light falling around the point does (the
     ratio of the two lights' open-sky irradiance at its normal). Kept as learnt, it would
     carry the first light's bounce into every relit view."""
-    old = open_irradiance(learnt, normals, directions)
-    new = open_irradiance(light, normals, directions)
+    old = irradiance(learnt, normals, directions)
+    new = irradiance(light, normals, directions)
     floor = 1e-3 * old.mean().clamp(min=1e-6)
     # where the learnt light hardly reaches a normal, the two lights' mean ratio
     overall = new.mean(0) / old.mean(0).clamp(min=1e-6)
@@ -151,12 +151,12 @@ class MaterialField(torch.nn.Module):
             if light is not None:  # relit: see relit_indirect
                 indirect = relit_indirect(indirect, learnt, light, n, self.directions)
         light = learnt if light is None else light
-        bounced = None
-        if self.bounce is not None and vis is not None:
+        bounce, bounced = self.bounce, None
+        if bounce is not None:  # baked with the visibility: never without it
             leaving = diffuse_both_sides(
                 self.base_color, F.normalize(self.normals, dim=1), light, self.directions, vis
             )
-            bounced = self.bounce.irradiance(leaving, len(g))
+            bounced = bounce.irradiance(leaving, len(g))
         color = shade(
             self.base_color,
             self.roughness,

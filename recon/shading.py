@@ -188,19 +188,22 @@ def diffuse_both_sides(
     """[2N, 3] the diffuse radiance leaving each surface (base color [N, 3], unit normals
     [N, 3]) from its front (row 2 i: the side its normal points to) and its back (2 i + 1),
     lit by the light where ``visibility`` [N, K] lets it through."""
-    sky = _coarse_sky(light, directions)
-    cos = normals @ directions.T
-    weight = 4 * math.pi / len(directions)
-    front = (cos.clamp(min=0) * visibility) @ sky * weight
-    back = ((-cos).clamp(min=0) * visibility) @ sky * weight
+    front = irradiance(light, normals, directions, visibility)
+    back = irradiance(light, -normals, directions, visibility)
     return (base_color[:, None] / math.pi * torch.stack([front, back], 1)).reshape(-1, 3)
 
 
-def open_irradiance(
-    light: list[torch.Tensor], normals: torch.Tensor, directions: torch.Tensor
+def irradiance(
+    light: list[torch.Tensor],
+    normals: torch.Tensor,
+    directions: torch.Tensor,
+    visibility: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """[N, 3] irradiance at unit normals [N, 3] from the whole light, nothing blocking it."""
+    """[N, 3] irradiance at unit normals [N, 3] from the light, where ``visibility`` [N, K]
+    lets it through (None: nothing blocks it)."""
     cos = (normals @ directions.T).clamp(min=0)
+    if visibility is not None:
+        cos = cos * visibility
     return cos @ _coarse_sky(light, directions) * (4 * math.pi / len(directions))
 
 
