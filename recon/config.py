@@ -60,7 +60,9 @@ class RadianceConfig:
     log_eps: float = 1e-3  # added to the radiance before the log (the sensor's dark level)
     # a pixel without events: "target" (its change is 0) or "bound" (|change| < C)
     zero_events: ZeroEvents = "target"
-    silent_weight: float = 0.3  # share of the event loss for pixels without events
+    # share of the event loss for pixels without events; None: one mean over all pixels, as
+    # the method's sum (losses.event_loss)
+    silent_weight: float | None = 0.3
     # loss weights (method.md): L = L_event + 0.1 L_GW + 0.05 L_normal
     anchor_weight: float = 0.1
     anchor_level: float = 0.5  # g: the mean rendered brightness
@@ -202,8 +204,12 @@ PRESETS: dict[Preset, RadianceConfig] = {
         alpha_weight=0.03,
         background_tv_weight=1.0,
     ),
+    # the method's reference run (reference/method.md, checked by tests/recon/test_presets.py):
+    # its losses alone, over every pixel, on the sensor at full scale
     "paper": RadianceConfig(
         iterations=30_000,
+        silent_weight=None,
+        opacity_reg=0.0,
         resolution=1.0,
         sh_degree=3,
         init_gaussians=100_000,

@@ -37,9 +37,9 @@ class Densifier:
             return
         g = g.reshape(-1, 2).detach() * torch.tensor([width / 2, height / 2], device=g.device)
         self._fit(len(g), g.device)
-        vis = render.visible
-        self.grad_sum[vis] += g[vis].norm(dim=1)
-        self.count[vis] += 1
+        seen = render.visible.to(g.dtype)  # as weights, not an index: no wait for the device
+        self.grad_sum += g.norm(dim=1) * seen
+        self.count += seen
 
     def due(self, step: int) -> tuple[bool, bool]:
         """(densify now, reset opacities now) after optimisation step ``step`` (1-based)."""

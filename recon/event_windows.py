@@ -1,16 +1,25 @@
-"""The events as the loss reads them: per-pixel signed sums over windows between frame times.
+"""The events as the loss reads them: per-pixel ON and OFF counts over windows between frame
+times, from a table prepared once.
 
 The frames are a regular grid of times (the rendered frames); a window runs from one frame time
-to a later one. The events are kept in memory as one int32 per event (pixel * 2 + polarity) in
-time order, with the index of the first event at or after each frame time, so that any
-window's per-pixel counts are one bincount over its events, however many there are.
+to a later one. Every event gets a key, (pixel * 2 + ON) * F + the frame interval it falls in,
+and the table keeps each distinct key once, sorted, with the number of events under smaller
+keys. The events of one pixel and polarity before frame f are then that number at the first key
+at or after (pixel * 2 + ON) * F + f: one search per pixel, polarity and frame, and a window's
+counts are the difference at its two frames. A step costs the same however many events its
+windows hold, and the table lives on the training device: no event is touched during
+training. Memory: 16 bytes per distinct (pixel, polarity, frame interval) that has events, at
+most 16 bytes an event (docs/reconstruction.md gives the paper's scale).
+
 Timestamps stay int64 microseconds throughout.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import torch
 
@@ -26,9 +35,10 @@ class EventWindows:
     width: int
     height: int
     frame_times: np.ndarray  # [F] int64 us
-    codes: np.ndarray  # [E] int32: pixel * 2 + (1 if ON)
-    starts: np.ndarray  # [F] int64: index of the first event at or after each frame time
-    threshold_on: torch.Tensor  # [H * W]
+    keys: torch.Tensor  # [U] int64, sorted and distinct: (pixel * 2 + ON) * F + interval
+    before: torch.Tensor  # [U + 1] int64: the events under a smaller key (the last: all)
+    rows: torch.Tensor  # [2 P + 1] int64: each (pixel, polarity)'s first key
+    threshold_on: torch.Tensor  # [P]
     threshold_off: torch.Tensor
 
     @classmethod
@@ -40,6 +50,7 @@ class EventWindows:
         t_end: int,
         interval_us: int,
         max_frames: int,
+        device: torch.device | str = "cpu",
     ) -> EventWindows:
         """Frames every ``interval_us`` (or coarser, to stay within ``max_frames``) over
         [t_start, t_end], with the events between them."""
@@ -53,7 +64,7 @@ class EventWindows:
                 f"{session.path}: the recording ({span} us with poses) is shorter than one "
                 f"frame interval ({interval} us)"
             )
-        w = session.sensor.width
+        w, h = session.sensor.width, session.sensor.height
         i0, i1 = session.event_index(int(times[0])), session.event_index(int(times[-1]))
         if i1 - i0 < MIN_EVENTS:
             raise InputError(
@@ -61,40 +72,160 @@ class EventWindows:
                 f"a reconstruction needs at least {MIN_EVENTS:,} (record the camera moving "
                 "around the scene for a few seconds)"
             )
-        codes = np.empty(i1 - i0, np.int32)
-        starts = np.zeros(len(times), np.int64)
-        done = 0
+        parts = []
         for ev in _blocks(session, i0, i1):
-            n = len(ev)
-            codes[done : done + n] = (ev.y.astype(np.int32) * w + ev.x) * 2 + (ev.p > 0)
-            starts += np.searchsorted(ev.t, times, side="left")
-            done += n
+            codes = (ev.y.astype(np.int64) * w + ev.x) * 2 + (ev.p > 0)
+            slots = np.searchsorted(times, ev.t, side="right") - 1
+            parts.append(np.unique(codes * len(times) + slots, return_counts=True))
+        keys, counts = _merge(parts)
+        return cls.from_keys(
+            w, h, times, keys, counts, optics.threshold_on, optics.threshold_off, device
+        )
+
+    @classmethod
+    def from_codes(
+        cls,
+        width: int,
+        height: int,
+        frame_times: np.ndarray,
+        codes: np.ndarray,
+        starts: np.ndarray,
+        threshold_on: np.ndarray | torch.Tensor,
+        threshold_off: np.ndarray | torch.Tensor,
+        device: torch.device | str = "cpu",
+    ) -> EventWindows:
+        """From events in time order given as codes (pixel * 2 + ON) [E] and the index of the
+        first event at or after each frame time ``starts`` [F] (the events before the first
+        frame time or at and after the last belong to no window)."""
+        frame_times = np.asarray(frame_times, np.int64)
+        codes, starts = np.asarray(codes, np.int64), np.asarray(starts, np.int64)
+        index = np.arange(len(codes))
+        slots = np.searchsorted(starts, index, side="right") - 1
+        inside = (index >= starts[0]) & (index < starts[-1])
+        keys = codes[inside] * len(frame_times) + slots[inside]
+        keys, counts = np.unique(keys, return_counts=True)
+        return cls.from_keys(
+            width, height, frame_times, keys, counts, threshold_on, threshold_off, device
+        )
+
+    @classmethod
+    def from_keys(
+        cls,
+        width: int,
+        height: int,
+        frame_times: np.ndarray,
+        keys: np.ndarray,
+        counts: np.ndarray,
+        threshold_on: np.ndarray | torch.Tensor,
+        threshold_off: np.ndarray | torch.Tensor,
+        device: torch.device | str = "cpu",
+    ) -> EventWindows:
+        """From the distinct keys [U] (sorted) and the events under each [U]."""
+        frames = len(frame_times)
+        before = np.concatenate([[0], np.cumsum(counts, dtype=np.int64)])
+        rows = np.searchsorted(keys, np.arange(2 * width * height + 1, dtype=np.int64) * frames)
+
+        def tensor(x, dtype):
+            x = x if isinstance(x, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(x))
+            return x.reshape(-1).to(device, dtype)
+
         return cls(
-            w,
-            session.sensor.height,
-            times,
-            codes,
-            starts,
-            torch.from_numpy(optics.threshold_on.ravel().copy()),
-            torch.from_numpy(optics.threshold_off.ravel().copy()),
+            width,
+            height,
+            np.asarray(frame_times, np.int64),
+            tensor(keys, torch.int64),
+            tensor(before, torch.int64),
+            tensor(rows, torch.int64),
+            tensor(threshold_on, torch.float32),
+            tensor(threshold_off, torch.float32),
         )
 
     def __len__(self) -> int:
         return len(self.frame_times)
 
+    @property
+    def events(self) -> int:
+        """The events inside the frames."""
+        return int(self.before[-1])
+
+    def nbytes(self) -> int:
+        """The memory the table takes on its device."""
+        return sum(t.element_size() * t.numel() for t in (self.keys, self.before, self.rows))
+
+    def before_frames(self, frames: Sequence[int]) -> torch.Tensor:
+        """[K, 2 P] the events of each pixel and polarity (column pixel * 2 + ON) before each
+        of the ``frames`` (indices into frame_times, given on the host): on the CPU each
+        pixel searching its own few keys (compiled), elsewhere one sorted search of all."""
+        f = np.asarray(frames, np.int64)
+        if self.keys.device.type == "cpu":
+            return self.before_by_rows(f)
+        return self.before_by_search(f)
+
+    def before_by_rows(self, frames: np.ndarray) -> torch.Tensor:
+        out = torch.empty(len(frames), len(self.rows) - 1, dtype=torch.int64)
+        _before_rows(
+            self.keys.numpy(),
+            self.before.numpy(),
+            self.rows.numpy(),
+            np.asarray(frames, np.int64),
+            len(self.frame_times),
+            out.numpy(),
+        )
+        return out
+
+    def before_by_search(self, frames: np.ndarray) -> torch.Tensor:
+        # each frame index added as a number: nothing is copied to the device
+        codes = torch.arange(len(self.rows) - 1, device=self.keys.device) * len(self.frame_times)
+        queries = torch.stack([codes + int(f) for f in frames])
+        found = torch.searchsorted(self.keys, queries.reshape(-1))
+        return self.before[found].reshape(len(frames), -1)
+
+    def between(
+        self, before_a: torch.Tensor, before_b: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(ON, OFF) counts [P] (float32) between two rows of before_frames."""
+        c = (before_b - before_a).reshape(-1, 2).to(torch.float32)
+        return c[:, 1], c[:, 0]
+
     def counts(self, a: int, b: int) -> tuple[torch.Tensor, torch.Tensor]:
         """(ON, OFF) event counts [H * W] of each pixel between frame a and frame b > a."""
-        codes = self.codes[self.starts[a] : self.starts[b]]
-        n = self.width * self.height
-        c = np.bincount(codes, minlength=2 * n).reshape(n, 2)
-        return torch.from_numpy(c[:, 1].astype(np.float32)), torch.from_numpy(
-            c[:, 0].astype(np.float32)
-        )
+        n = self.before_frames([a, b])
+        return self.between(n[0], n[1])
+
+    def change(self, on: torch.Tensor, off: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(C_on ON - C_off OFF, ON + OFF) per pixel [H * W] from the counts."""
+        return self.threshold_on * on - self.threshold_off * off, on + off
 
     def log_change(self, a: int, b: int) -> tuple[torch.Tensor, torch.Tensor]:
         """(C_on ON - C_off OFF, ON + OFF) per pixel [H * W] between frames a and b."""
-        on, off = self.counts(a, b)
-        return self.threshold_on * on - self.threshold_off * off, on + off
+        return self.change(*self.counts(a, b))
+
+
+@numba.njit(cache=True, parallel=True)
+def _before_rows(keys, before, rows, frames, n_frames, out):
+    """before_frames on the CPU: each (pixel, polarity) searches its own few keys."""
+    for code in numba.prange(len(rows) - 1):
+        first, last = rows[code], rows[code + 1]
+        for k in range(len(frames)):
+            query = code * n_frames + frames[k]
+            lo, hi = first, last
+            while lo < hi:
+                mid = (lo + hi) >> 1
+                if keys[mid] < query:
+                    lo = mid + 1
+                else:
+                    hi = mid
+            out[k, code] = before[lo]
+
+
+def _merge(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """One sorted set of distinct keys, with their counts summed, from the blocks'."""
+    if len(parts) == 1:
+        return parts[0]
+    keys = np.concatenate([k for k, _ in parts])
+    counts = np.concatenate([c for _, c in parts])
+    keys, inverse = np.unique(keys, return_inverse=True)
+    return keys, np.bincount(inverse, weights=counts, minlength=len(keys)).astype(np.int64)
 
 
 def _blocks(session: Session, i0: int, i1: int, block: int = 4_000_000):

@@ -9,6 +9,7 @@ import torch
 import torch.nn.functional as F
 
 from evcap.recon.config import RadianceConfig
+from evcap.recon.neighbours import nearest
 from evcap.recon.sh import C0, eval_sh
 from evcap.recon.shading import cube_lookup
 
@@ -89,17 +90,14 @@ class Gaussians(torch.nn.Module):
         return F.softplus(eval_sh(degree, coeffs, dirs))
 
 
-def _neighbour_distance(points: torch.Tensor, k: int = 3, chunk: int = 2048) -> torch.Tensor:
+def _neighbour_distance(points: torch.Tensor, k: int = 3) -> torch.Tensor:
     """Root mean square distance of each point to its k nearest neighbours (3DGS's start size)."""
-    out = []
     k = min(k, len(points) - 1)
     if k < 1:
         return torch.ones(len(points))
-    for i in range(0, len(points), chunk):
-        d2 = torch.cdist(points[i : i + chunk], points).square()
-        near = torch.topk(d2, k + 1, largest=False).values[:, 1:]
-        out.append(near.mean(1).sqrt())
-    return torch.cat(out)
+    distances, _ = nearest(points, points, k + 1)
+    near = distances[:, 1:]  # the first is the point itself
+    return torch.from_numpy(np.sqrt((near * near).mean(1))).to(points.dtype)
 
 
 class Background(torch.nn.Module):

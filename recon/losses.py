@@ -2,12 +2,34 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Iterable
 from typing import assert_never
 
 import torch
 import torch.nn.functional as F
 
+from evcap.errors import NumericalError
 from evcap.recon.config import ZeroEvents
+
+
+def checked_loss(
+    stage: str, step: int, total: torch.Tensor | None, parameters: Iterable[torch.Tensor]
+) -> float:
+    """The loss ``total`` as a float (NaN when None), after checking that it and every
+    parameter are finite: NumericalError, naming the step, when one is not. One wait for the
+    device, so the trainers check every few steps rather than at each."""
+    checks = [torch.isfinite(p.detach()).all() for p in parameters]
+    if total is not None:
+        checks.append(torch.isfinite(total.detach()))
+    if checks and not bool(torch.stack(checks).all()):
+        if total is not None and not torch.isfinite(total.detach()):
+            raise NumericalError(f"{stage}: the loss became {float(total)} by step {step}")
+        raise NumericalError(
+            f"{stage}: a parameter became NaN or infinite by step {step}: the optimisation "
+            "diverged; lower its learning rates"
+        )
+    return float(total.detach()) if total is not None else math.nan
 
 
 def log_radiance(radiance: torch.Tensor, eps: float) -> torch.Tensor:
@@ -114,6 +136,32 @@ def normal_loss(
     err = (n - n_d).abs().sum(-1)
     m = mask.to(err.dtype)
     return (err * m).sum() / m.sum().clamp(min=1)
+
+
+def surface_terms(
+    normal: torch.Tensor,
+    depth: torch.Tensor,
+    alpha: torch.Tensor,
+    second_moment: torch.Tensor | None,
+    K: torch.Tensor,
+    smooth_step: float,
+    which: tuple[bool, bool, bool],
+) -> torch.Tensor:
+    """[3]: normal_loss, depth_spread_loss and normal_smoothness_loss of one render (0 for a
+    term ``which`` leaves out); on the CPU one compiled pass (recon/_surface_terms_cpu.py),
+    elsewhere these functions."""
+    if normal.device.type == "cpu":
+        from evcap.recon._surface_terms_cpu import surface_terms_cpu
+
+        return surface_terms_cpu(normal, depth, alpha, second_moment, K, smooth_step, which)
+    zero = depth.new_zeros(())
+    return torch.stack(
+        [
+            normal_loss(normal, depth, alpha, K) if which[0] else zero,
+            depth_spread_loss(second_moment, depth, alpha) if which[1] else zero,
+            normal_smoothness_loss(normal, depth, alpha, smooth_step) if which[2] else zero,
+        ]
+    )
 
 
 def depth_spread_loss(

@@ -23,16 +23,17 @@ import torch
 import torch.nn.functional as F
 
 from evcap.edge_maps import edge_map
-from evcap.errors import InputError, NumericalError
+from evcap.errors import InputError
 from evcap.recon.config import Ablation, Backend, EffectMode, MaterialConfig, RadianceConfig
 from evcap.recon.gaussians import Background, Gaussians
-from evcap.recon.losses import anchor_loss
+from evcap.recon.losses import anchor_loss, checked_loss
+from evcap.recon.neighbours import nearest
 from evcap.recon.optics import RenderGrid
 from evcap.recon.radiance import (
+    CHECK_EVERY,
     RadianceField,
     TrainingData,
     draw_frames,
-    pixel_directions,
     windows_event_loss,
 )
 from evcap.recon.rasterize import Camera, Render, gaussian_normals, rasterize
@@ -49,6 +50,7 @@ from evcap.recon.shading import (
     mip_chain,
     shade,
 )
+from evcap.recon.step_timer import UNTIMED, StepTimer
 from evcap.recon.visibility import Bounce, bake_occlusion
 from evcap.session import Session
 
@@ -177,13 +179,19 @@ class MaterialField(torch.nn.Module):
         shading normals (camera frame); the light behind the Gaussians in the radiance."""
         device = self.gaussians.means.device
         viewmat = torch.as_tensor(np.linalg.inv(T_world_cam), dtype=torch.float32, device=device)
+        return self.render_view(viewmat, grid, light)
+
+    def render_view(
+        self, viewmat: torch.Tensor, grid: RenderGrid, light: list[torch.Tensor] | None = None
+    ) -> Render:
+        """render() from ``viewmat`` [4, 4] (world to camera, on the field's device)."""
         cam = Camera(viewmat, grid.K, grid.width, grid.height)
         color, n = self.shaded(cam.center, light)
         features = torch.cat(
             [color, self.base_color, self.roughness[:, None], n @ viewmat[:3, :3].T], 1
         )
         faces = self.light.radiance_faces() if light is None else light[0]
-        sky = cube_lookup(faces, pixel_directions(cam))
+        sky = cube_lookup(faces, grid.directions(viewmat))
         bg = torch.cat([sky, sky.new_zeros(*sky.shape[:-1], 7)], -1)
         g = self.gaussians
         return rasterize(
@@ -253,7 +261,7 @@ def modelled(mode: EffectMode, auto: Callable[[], bool]) -> bool:
 
 @torch.no_grad()
 def plane_normals(
-    means: torch.Tensor, opacity: torch.Tensor, k: int = 32, chunk: int = 2048
+    means: torch.Tensor, opacity: torch.Tensor, k: int = 32, chunk: int = 65536
 ) -> torch.Tensor:
     """[N, 3] unsigned normal of the plane through each point's k nearest visible neighbours
     (the smallest principal axis of their spread): the surface the centres lie on, steadier
@@ -261,9 +269,10 @@ def plane_normals(
     example scene)."""
     ref = means[opacity > NEIGHBOUR_OPACITY]
     k = min(k, len(ref))
+    _, found = nearest(ref, means, k)
+    found = torch.from_numpy(found).to(means.device)
     out = []
-    for part in means.split(chunk):
-        idx = torch.cdist(part, ref).topk(k, largest=False).indices
+    for idx in found.split(chunk):
         nb = ref[idx] - ref[idx].mean(1, keepdim=True)
         _, vectors = torch.linalg.eigh(nb.transpose(1, 2) @ nb)
         out.append(vectors[:, :, 0])
@@ -317,7 +326,6 @@ class MaterialFit:
     field: MaterialField
     log: list[MaterialLog]
     interrupted: bool
-    edges: dict[int, torch.Tensor]  # frame -> edge map [h, w] on the render grid
     steps: int = 0  # the steps done
 
 
@@ -364,6 +372,7 @@ def train_material(
     resume: dict | None = None,
     save_state: Callable[[dict], None] | None = None,
     save_every_s: float = 120.0,
+    timer: StepTimer = UNTIMED,
 ) -> MaterialFit:
     """Fit stage II from a stage-I field; Ctrl-C ends it at the end of the step with what was
     learnt so far. ``ablate`` switches terms off: "anchor", "tv", "distill". ``resume`` and
@@ -382,8 +391,9 @@ def train_material(
                 "pass --force to start stage II over"
             ) from e
     frames_all = edge_frames(data, config.edge_frames)
+    # the TV's weights exp(-beta M_edge) of each training view, kept instead of the maps
     edges = edge_maps(session, data, frames_all, config.edge_slice_ms, device)
-    weights = {f: torch.exp(-config.edge_beta * m) for f, m in edges.items()}
+    weights = {f: torch.exp(-config.edge_beta * edges.pop(f)) for f in list(edges)}
     groups = [
         {"params": [field.base_logits], "lr": config.lr_base_color},
         {"params": [field.roughness_logits], "lr": config.lr_roughness},
@@ -396,10 +406,10 @@ def train_material(
     targets: dict[int, torch.Tensor] = {}
 
     @torch.no_grad()
-    def distill_target(frame: int, T_world_cam: np.ndarray) -> torch.Tensor:
+    def distill_target(frame: int) -> torch.Tensor:
         """Stage I's render of the frame (rendered once)."""
         if frame not in targets:
-            targets[frame] = radiance.render(T_world_cam, data.grid).color
+            targets[frame] = radiance.render_view(data.viewmats()[frame], data.grid).color
         return targets[frame]
 
     stride = max(len(data.windows) / len(frames_all), 1.0)
@@ -408,6 +418,7 @@ def train_material(
         stage1, max_window_frames=max(1, int(stage1.max_window_frames / stride))
     )
     log: list[MaterialLog] = []
+    loss = math.nan  # as last checked
     steps = Steps(config.iterations, save_state, save_every_s, clock, resume)
     if resume is not None:
         optimizer.load_state_dict(resume["optimizer"])
@@ -415,6 +426,7 @@ def train_material(
         log = [MaterialLog(**x) for x in resume["log"]]
 
     def state() -> dict:
+        checked_loss("stage II", steps.step, None, field.parameters())  # none saved broken
         return {
             "step": steps.step,
             "material": field.state_dict(),
@@ -430,22 +442,24 @@ def train_material(
             pick = draw_frames(rng, len(frames_all), spacing)
             frames = frames_all[pick]
             total, terms = _losses(
-                field, data, stage1, config, frames, distill_target, weights, ablate
+                field, data, stage1, config, frames, distill_target, weights, ablate, timer
             )
-            if not torch.isfinite(total):
-                raise NumericalError(f"stage II: the loss became {float(total)} at step {step}")
-            total.backward()
-            optimizer.step()
-            optimizer.zero_grad(set_to_none=True)
-            with torch.no_grad():
-                field.normals.data = F.normalize(field.normals.data, dim=1)
-            loss = total.item()
-            if step % 10 == 0 or step == config.iterations:
+            with timer("backward"):
+                total.backward()
+            with timer("optimizer"):
+                optimizer.step()
+                optimizer.zero_grad(set_to_none=True)
+                with torch.no_grad():
+                    field.normals.data = F.normalize(field.normals.data, dim=1)
+            if step % CHECK_EVERY == 0 or step == config.iterations:
+                loss = checked_loss("stage II", step, total, field.parameters())
+                terms = {k: float(v) for k, v in terms.items()}
                 log.append(MaterialLog(step, loss, **terms, seconds=steps.seconds()))
             steps.end()
             if progress:
-                progress(step, config.iterations, f"material loss {loss:.4f}")
-    return MaterialFit(field, log, steps.interrupted, edges, steps.step)
+                shown = f"material loss {loss:.4f}" if math.isfinite(loss) else "material"
+                progress(step, config.iterations, shown)
+    return MaterialFit(field, log, steps.interrupted, steps.step)
 
 
 def _losses(
@@ -454,38 +468,41 @@ def _losses(
     stage1: RadianceConfig,
     config: MaterialConfig,
     frames: np.ndarray,
-    distill_target: Callable[[int, np.ndarray], torch.Tensor],
+    distill_target: Callable[[int], torch.Tensor],
     edge_weights: dict[int, torch.Tensor],
     ablate: frozenset[Ablation],
-) -> tuple[torch.Tensor, dict[str, float]]:
+    timer: StepTimer = UNTIMED,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The loss of the renders at ``frames``, L = L_event + 1.0 L_rad + 0.1 L_GW + 0.05 L_TV
-    without the terms ``ablate`` leaves out; (the total, its terms). ``distill_target(frame,
-    pose)``: stage I's render of the frame; ``edge_weights``: exp(-beta M_edge) of each
-    frame."""
-    poses = data.track.at(data.windows.frame_times[frames])
-    renders = [field.render(T, data.grid) for T in poses]
-    seen = [data.grid.sample(r.color[..., :3]) for r in renders]
-    ev = windows_event_loss(data, stage1, frames, seen)
-    total = ev
-    terms = {"event": ev.item(), "distill": 0.0, "anchor": 0.0, "tv": 0.0}
-    if "distill" not in ablate:
-        dl = 0
-        for f, T, r in zip(frames, poses, renders, strict=True):
-            dl = dl + (r.color[..., :3] - distill_target(int(f), T)).abs().mean()
-        dl = dl / len(renders)
-        total = total + config.distill_weight * dl
-        terms["distill"] = dl.item()
-    if "anchor" not in ablate:
-        an = anchor_loss(torch.cat(seen), stage1.anchor_level)
-        total = total + config.anchor_weight * an
-        terms["anchor"] = an.item()
-    if "tv" not in ablate:
-        tv = sum(
-            edge_tv(r.color, edge_weights[int(f)], config.tv_normal_weight)
-            for f, r in zip(frames, renders, strict=True)
-        ) / len(renders)
-        total = total + config.tv_weight * tv
-        terms["tv"] = tv.item()
+    without the terms ``ablate`` leaves out; (the total, its terms as tensors, to be read when
+    logged). ``distill_target(frame)``: stage I's render of the frame; ``edge_weights``:
+    exp(-beta M_edge) of each frame."""
+    with timer("render"):
+        renders = [field.render_view(data.viewmats()[int(f)], data.grid) for f in frames]
+    with timer("loss"):
+        seen = [data.grid.sample(r.color[..., :3]) for r in renders]
+        ev = windows_event_loss(data, stage1, frames, seen, timer)
+        total = ev
+        zero = torch.zeros(())
+        terms = {"event": ev.detach(), "distill": zero, "anchor": zero, "tv": zero}
+        if "distill" not in ablate:
+            dl = 0
+            for f, r in zip(frames, renders, strict=True):
+                dl = dl + (r.color[..., :3] - distill_target(int(f))).abs().mean()
+            dl = dl / len(renders)
+            total = total + config.distill_weight * dl
+            terms["distill"] = dl.detach()
+        if "anchor" not in ablate:
+            an = anchor_loss(torch.cat(seen), stage1.anchor_level)
+            total = total + config.anchor_weight * an
+            terms["anchor"] = an.detach()
+        if "tv" not in ablate:
+            tv = sum(
+                edge_tv(r.color, edge_weights[int(f)], config.tv_normal_weight)
+                for f, r in zip(frames, renders, strict=True)
+            ) / len(renders)
+            total = total + config.tv_weight * tv
+            terms["tv"] = tv.detach()
     return total, terms
 
 

@@ -9,6 +9,7 @@ taken on the sensor's own pixels, each with its own color channel.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -81,9 +82,35 @@ class RenderGrid:
     width: int
     height: int
     grid: torch.Tensor  # [1, 1, H * W, 2] for grid_sample (align_corners=True)
+    rays: torch.Tensor | None = None  # [h, w, 3] unit directions through the pixel centres,
+    # in the camera's frame (made from K when not given)
+    _sampler: object = dataclasses.field(default=None, repr=False)  # sample()'s on the CPU
+
+    def __post_init__(self) -> None:
+        if self.rays is None:
+            K = self.K
+            ys, xs = torch.meshgrid(
+                torch.arange(self.height, dtype=K.dtype, device=K.device),
+                torch.arange(self.width, dtype=K.dtype, device=K.device),
+                indexing="ij",
+            )
+            x, y = (xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1]
+            self.rays = F.normalize(torch.stack([x, y, torch.ones_like(xs)], -1), dim=-1)
+
+    def directions(self, viewmat: torch.Tensor) -> torch.Tensor:
+        """[h, w, 3] unit world directions of the rays through the render's pixel centres, for
+        a camera at ``viewmat`` [4, 4] (world to camera)."""
+        return self.rays @ viewmat[:3, :3]
 
     def sample(self, image: torch.Tensor) -> torch.Tensor:
-        """Values [H_sensor * W_sensor, C] of a render [h, w, C] at the sensor's pixels."""
+        """Values [H_sensor * W_sensor, C] of a render [h, w, C] at the sensor's pixels (on the
+        CPU one compiled sparse product, recon/_sample_cpu.py; elsewhere grid_sample)."""
+        if image.device.type == "cpu":
+            if self._sampler is None:
+                from evcap.recon._sample_cpu import Sampler
+
+                self._sampler = Sampler.of_grid(self.grid, self.width, self.height)
+            return self._sampler(image)
         x = image.permute(2, 0, 1)[None]
         out = F.grid_sample(
             x, self.grid, mode="bilinear", padding_mode="border", align_corners=True

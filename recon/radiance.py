@@ -10,6 +10,7 @@ alike on one surface, after a tenth of the run that fits the background alone.
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -18,25 +19,25 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from evcap.errors import InputError, NumericalError
+from evcap.errors import InputError
 from evcap.recon.config import Backend, RadianceConfig
 from evcap.recon.densify import Densifier
 from evcap.recon.event_windows import EventWindows
 from evcap.recon.gaussians import Background, Gaussians, make_optimizer, means_lr
 from evcap.recon.losses import (
     anchor_loss,
+    checked_loss,
     depth_curvature_loss,
-    depth_spread_loss,
     event_loss,
     log_radiance,
-    normal_loss,
-    normal_smoothness_loss,
     quiet_variation_loss,
+    surface_terms,
 )
 from evcap.recon.optics import CHANNEL_WEIGHTS, RenderGrid, SensorOptics, render_grid
 from evcap.recon.pose_refinement import PoseCorrections
 from evcap.recon.rasterize import Camera, Render, rasterize
 from evcap.recon.resume import Steps, random_states, restore_random_states
+from evcap.recon.step_timer import UNTIMED, StepTimer
 from evcap.recon.volume import SceneVolume, sample_points, scene_volume
 from evcap.records import Poses
 from evcap.session import Session
@@ -54,6 +55,17 @@ class TrainingData:
     channel_weights: torch.Tensor  # [H * W, 3]: what each sensor pixel sees of (R, G, B)
     mask: torch.Tensor  # [H * W] bool: pixels the loss uses (hot pixels left out)
     volume: SceneVolume
+    _viewmats: tuple[Poses, torch.Tensor] | None = dataclasses.field(default=None, repr=False)
+
+    def viewmats(self) -> torch.Tensor:
+        """[F, 4, 4] world to camera at every frame time (float32, on the training device),
+        from the track as it is now (stage I may have refined it): prepared once, so that a
+        step reads its views' poses without the host."""
+        if self._viewmats is None or self._viewmats[0] is not self.track:
+            T = np.linalg.inv(self.track.at(self.windows.frame_times))
+            device = self.grid.K.device
+            self._viewmats = (self.track, torch.as_tensor(T, dtype=torch.float32, device=device))
+        return self._viewmats[1]
 
 
 def load_training_data(session: Session, config: RadianceConfig, device: str) -> TrainingData:
@@ -65,7 +77,13 @@ def load_training_data(session: Session, config: RadianceConfig, device: str) ->
     # the recording starts at 0, whenever its first event came
     start, end = max(track.start, 0), min(track.end, span[1])
     windows = EventWindows.from_session(
-        session, optics, start, end, round(config.frame_interval_ms * 1000), config.max_frames
+        session,
+        optics,
+        start,
+        end,
+        round(config.frame_interval_ms * 1000),
+        config.max_frames,
+        device,
     )
     poses = track.at(windows.frame_times)
     volume = scene_volume(poses, optics.K, optics.width, optics.height)
@@ -109,10 +127,21 @@ class RadianceField(torch.nn.Module):
             viewmat = torch.as_tensor(
                 np.linalg.inv(T_world_cam), dtype=torch.float32, device=device
             )
+        return self.render_view(viewmat, grid, sh_degree, spread, hidden)
+
+    def render_view(
+        self,
+        viewmat: torch.Tensor,
+        grid: RenderGrid,
+        sh_degree: int | None = None,
+        spread: bool = False,
+        hidden: bool = False,
+    ) -> Render:
+        """render() from ``viewmat`` [4, 4] (world to camera, on the field's device)."""
         cam = Camera(viewmat, grid.K, grid.width, grid.height)
         g = self.gaussians
         colors = g.radiance(cam.center, sh_degree)
-        bg = self.background(pixel_directions(cam))
+        bg = self.background(grid.directions(viewmat))
         if spread:
             z = g.means @ viewmat[2, :3] + viewmat[2, 3]
             colors = torch.cat([colors, (z * z)[:, None]], 1)
@@ -129,19 +158,7 @@ class RadianceField(torch.nn.Module):
         )
 
 
-def pixel_directions(cam: Camera) -> torch.Tensor:
-    """[H, W, 3] unit world directions of the rays through each pixel centre."""
-    dev = cam.K.device
-    ys, xs = torch.meshgrid(
-        torch.arange(cam.height, dtype=torch.float32, device=dev),
-        torch.arange(cam.width, dtype=torch.float32, device=dev),
-        indexing="ij",
-    )
-    d = torch.stack(
-        [(xs - cam.K[0, 2]) / cam.K[0, 0], (ys - cam.K[1, 2]) / cam.K[1, 1], torch.ones_like(xs)],
-        -1,
-    )
-    return F.normalize(d @ cam.viewmat[:3, :3], dim=-1)
+CHECK_EVERY = 10  # steps: the log's and the NaN check's (each check waits for the device)
 
 
 @dataclass
@@ -214,13 +231,16 @@ def train_radiance(
     resume: dict | None = None,
     save_state: Callable[[dict], None] | None = None,
     save_every_s: float = 120.0,
+    timer: StepTimer = UNTIMED,
 ) -> Fit:
     """Fit stage I; Ctrl-C ends it at the end of the step with what was learnt so far.
     ``evaluate``, when given, is called at ``evaluations`` evenly spaced steps (its time not
     counted in the training's seconds) and what it returns goes into the fit's history with
     step and seconds: the accuracy-versus-time curve. ``save_state`` is given the training's
     state every ``save_every_s`` seconds and when it is interrupted; ``resume`` (such a state)
-    goes on from its step as if it had never stopped."""
+    goes on from its step as if it had never stopped. The loss and the parameters are checked
+    for NaN every CHECK_EVERY steps (each check makes a GPU wait for the host); ``timer``
+    measures the parts of each step (bench/steps.py)."""
     torch.manual_seed(seed)
     if resume is None:
         field = new_field(data, config, seed, device, backend)
@@ -247,8 +267,10 @@ def train_radiance(
             pose_optimizer.load_state_dict(resume["pose_optimizer"])
     degree_every = max(config.iterations // 30, 1)
     evaluate_at = set(np.linspace(0, config.iterations, evaluations + 1)[1:].round().astype(int))
+    loss = math.nan  # as last checked
 
     def state() -> dict:
+        checked_loss("stage I", steps.step, None, field.parameters())  # none saved broken
         poses = {}
         if corrections is not None:
             poses["corrections"] = corrections.state_dict()
@@ -285,30 +307,34 @@ def train_radiance(
                 sh_degree,
                 step,
                 corrections if refining else None,
+                timer,
             )
-            if not torch.isfinite(total):
-                raise NumericalError(f"stage I: the loss became {float(total)} at step {step}")
-            total.backward()
-            loss = total.item()
-            for r in renders:
-                densifier.observe(r, grid.width, grid.height)
-            for group in optimizer.param_groups:
-                if group["name"] == "means":
-                    group["lr"] = means_lr(config, extent, step)
-            optimizer.step()
-            optimizer.zero_grad(set_to_none=True)
-            if refining:
-                _pose_step(pose_optimizer, corrections, config, step)
-            with torch.no_grad():
-                q = field.gaussians.quats
-                q.data = F.normalize(q.data, dim=1)  # any length is a rotation; keep off zero
-            densify, reset = densifier.due(step)
-            if densify:
-                densifier.densify(field.gaussians, optimizer)
-            if reset:
-                densifier.reset_opacities(field.gaussians, optimizer)
+            with timer("backward"):
+                total.backward()
+            with timer("densification"):
+                for r in renders:
+                    densifier.observe(r, grid.width, grid.height)
+            with timer("optimizer"):
+                for group in optimizer.param_groups:
+                    if group["name"] == "means":
+                        group["lr"] = means_lr(config, extent, step)
+                optimizer.step()
+                optimizer.zero_grad(set_to_none=True)
+                if refining:
+                    _pose_step(pose_optimizer, corrections, config, step)
+                with torch.no_grad():
+                    q = field.gaussians.quats
+                    q.data = F.normalize(q.data, dim=1)  # any length is a rotation; keep off zero
+            with timer("densification"):
+                densify, reset = densifier.due(step)
+                if densify:
+                    densifier.densify(field.gaussians, optimizer)
+                if reset:
+                    densifier.reset_opacities(field.gaussians, optimizer)
             n = len(field.gaussians)
-            if step % 10 == 0 or step == config.iterations:
+            if step % CHECK_EVERY == 0 or step == config.iterations:
+                loss = checked_loss("stage I", step, total, field.parameters())
+                terms = {k: float(v) for k, v in terms.items()}
                 log.append(StepLog(step, loss, **terms, gaussians=n, seconds=steps.seconds()))
             if evaluate is not None and step in evaluate_at:
                 seconds = steps.seconds()
@@ -316,7 +342,8 @@ def train_radiance(
                     history.append({"step": step, "seconds": seconds, **evaluate(field)})
             steps.end()
             if progress:
-                progress(step, config.iterations, f"loss {loss:.4f}  {n:,} Gaussians")
+                shown = f"loss {loss:.4f}  " if math.isfinite(loss) else ""
+                progress(step, config.iterations, f"{shown}{n:,} Gaussians")
     return Fit(field, log, steps.interrupted, history, steps.step, corrections)
 
 
@@ -368,32 +395,70 @@ def draw_frames(rng: np.random.Generator, frames: int, config: RadianceConfig) -
 
 
 def windows_event_loss(
-    data: TrainingData, config: RadianceConfig, frames: np.ndarray, seen: list[torch.Tensor]
+    data: TrainingData,
+    config: RadianceConfig,
+    frames: np.ndarray,
+    seen: list[torch.Tensor],
+    timer: StepTimer = UNTIMED,
 ) -> torch.Tensor:
     """The event loss of every window between two of the views ``seen`` [H * W, 3] (the
-    renders at the sensor's pixels) at ``frames``, averaged."""
-    logs = [log_radiance((s * data.channel_weights).sum(1), config.log_eps) for s in seen]
+    renders at the sensor's pixels) at ``frames``, averaged (on the CPU in one compiled pass,
+    recon/_event_loss_cpu.py)."""
     w = data.windows
+    with timer("events"):
+        before = w.before_frames(frames)
+    pairs = [
+        (i, j)
+        for i in range(len(frames))
+        for j in range(i + 1, len(frames))
+        if frames[j] != frames[i]
+    ]
+    if not pairs:
+        return seen[0].sum() * 0
+    if seen[0].device.type == "cpu":
+        from evcap.recon._event_loss_cpu import event_loss_cpu
+
+        return event_loss_cpu(
+            seen,
+            data.channel_weights,
+            config.log_eps,
+            before,
+            pairs,
+            w.threshold_on,
+            w.threshold_off,
+            data.mask,
+            config.zero_events,
+            config.silent_weight,
+        )
+    return event_loss_torch(data, config, before, pairs, seen)
+
+
+def event_loss_torch(
+    data: TrainingData,
+    config: RadianceConfig,
+    before: torch.Tensor,
+    pairs: list[tuple[int, int]],
+    seen: list[torch.Tensor],
+) -> torch.Tensor:
+    """windows_event_loss in PyTorch operations: losses.event_loss window by window."""
+    w = data.windows
+    logs = [log_radiance((s * data.channel_weights).sum(1), config.log_eps) for s in seen]
     event = []
-    for i in range(len(frames)):
-        for j in range(i + 1, len(frames)):
-            if frames[j] == frames[i]:
-                continue
-            target, counts = w.log_change(int(frames[i]), int(frames[j]))
-            dev = logs[i].device
-            event.append(
-                event_loss(
-                    logs[j] - logs[i],
-                    target.to(dev),
-                    counts.to(dev),
-                    w.threshold_on.to(dev),
-                    w.threshold_off.to(dev),
-                    data.mask,
-                    config.zero_events,
-                    config.silent_weight,
-                )
+    for i, j in pairs:
+        target, counts = w.change(*w.between(before[i], before[j]))
+        event.append(
+            event_loss(
+                logs[j] - logs[i],
+                target,
+                counts,
+                w.threshold_on,
+                w.threshold_off,
+                data.mask,
+                config.zero_events,
+                config.silent_weight,
             )
-    return torch.stack(event).mean() if event else logs[0].sum() * 0
+        )
+    return torch.stack(event).mean()
 
 
 def _losses(
@@ -405,27 +470,48 @@ def _losses(
     sh_degree: int,
     step: int,
     corrections: PoseCorrections | None = None,
-) -> tuple[list[Render], torch.Tensor, dict[str, float]]:
+    timer: StepTimer = UNTIMED,
+) -> tuple[list[Render], torch.Tensor, dict[str, torch.Tensor]]:
     """The renders on ``grid`` at the frames (from the corrected poses when ``corrections``
-    are given), and the loss of every window between two of them."""
-    times = data.windows.frame_times[frames]
-    poses = data.track.at(times)
-    if corrections is not None:
-        poses = corrections.apply(poses, times)
+    are given), and the loss of every window between two of them; (renders, total, its terms
+    as tensors, to be read when logged)."""
     spread = config.spread_weight > 0
     hidden = step <= config.background_first * config.iterations
-    renders = [field.render(T, grid, sh_degree, spread, hidden) for T in poses]
+    with timer("render"):
+        if corrections is None:
+            views = [data.viewmats()[int(f)] for f in frames]
+            renders = [field.render_view(v, grid, sh_degree, spread, hidden) for v in views]
+        else:
+            times = data.windows.frame_times[frames]
+            poses = corrections.apply(data.track.at(times), times)
+            renders = [field.render(T, grid, sh_degree, spread, hidden) for T in poses]
+    with timer("loss"):
+        return _terms(field, data, grid, config, frames, step, renders, corrections, timer)
+
+
+def _terms(
+    field: RadianceField,
+    data: TrainingData,
+    grid: RenderGrid,
+    config: RadianceConfig,
+    frames: np.ndarray,
+    step: int,
+    renders: list[Render],
+    corrections: PoseCorrections | None,
+    timer: StepTimer,
+) -> tuple[list[Render], torch.Tensor, dict[str, torch.Tensor]]:
     seen = [grid.sample(r.color[..., :3]) for r in renders]  # [H * W, 3], sensor pixels
-    ev = windows_event_loss(data, config, frames, seen)
+    ev = windows_event_loss(data, config, frames, seen, timer)
     an = anchor_loss(torch.cat(seen), config.anchor_level)
     total = ev + config.anchor_weight * an
     if corrections is not None:
         total = total + config.pose_smooth_weight * corrections.smoothness()
-    terms = {"event": ev.item(), "anchor": an.item(), "normal": 0.0}
+    terms = {"event": ev.detach(), "anchor": an.detach(), "normal": torch.zeros(())}
+    hidden = step <= config.background_first * config.iterations
     if config.quiet_tv_weight > 0:
         H, W = data.optics.height, data.optics.width
         _, counts = data.windows.log_change(int(frames[0]), int(frames[-1]))
-        loud = ((counts.to(data.mask.device) > 0) | ~data.mask).reshape(H, W)
+        loud = ((counts > 0) | ~data.mask).reshape(H, W)
         tv = sum(
             quiet_variation_loss(log_radiance(s, config.log_eps).reshape(H, W, 3), loud)
             for s in seen
@@ -435,19 +521,27 @@ def _losses(
         total = total + config.background_tv_weight * field.background.log_variation()
     if hidden:  # the background alone: the terms of the Gaussians wait for them
         return renders, total, terms
-    if config.normal_weight > 0 and step > config.normal_from * config.iterations:
-        nl = sum(normal_loss(r.normal, r.depth, r.alpha, grid.K) for r in renders)
-        nl = nl / len(renders)
-        total = total + config.normal_weight * nl
-        terms["normal"] = nl.item()
-    if spread:
-        sl = sum(depth_spread_loss(r.color[..., 3], r.depth, r.alpha) for r in renders)
-        total = total + config.spread_weight * sl / len(renders)
-    if config.smooth_weight > 0:
-        sm = sum(
-            normal_smoothness_loss(r.normal, r.depth, r.alpha, config.smooth_step) for r in renders
-        )
-        total = total + config.smooth_weight * sm / len(renders)
+    which = (
+        config.normal_weight > 0 and step > config.normal_from * config.iterations,
+        config.spread_weight > 0,
+        config.smooth_weight > 0,
+    )
+    if any(which):
+        surface = sum(
+            surface_terms(
+                r.normal,
+                r.depth,
+                r.alpha,
+                r.color[..., 3] if which[1] else None,
+                grid.K,
+                config.smooth_step,
+                which,
+            )
+            for r in renders
+        ) / len(renders)
+        weights = (config.normal_weight, config.spread_weight, config.smooth_weight)
+        total = total + sum(w * surface[k] for k, w in enumerate(weights) if which[k])
+        terms["normal"] = surface[0].detach()
     if config.curvature_weight > 0:
         cu = sum(depth_curvature_loss(r.depth, r.alpha) for r in renders)
         total = total + config.curvature_weight * cu / len(renders)

@@ -124,7 +124,8 @@ def pick_backend(name: Backend | None, device: torch.device | str) -> Backend:
 
 def _check_inputs(means, quats, scales, opacities, features) -> None:
     """Shapes that agree, and finite values: a NaN would render a finite image whose gradients
-    are NaN, silently."""
+    are NaN, silently. The values are checked on the CPU only: on a GPU the check would make
+    every render wait for the host (the trainers check their parameters every few steps)."""
     n = means.shape[0]
     shapes = {"means": [n, 3], "quats": [n, 4], "scales": [n, 3], "opacities": [n]}
     shapes["features"] = [n, features.shape[-1]]
@@ -132,7 +133,9 @@ def _check_inputs(means, quats, scales, opacities, features) -> None:
     for name, value in {**values, "features": features}.items():
         if list(value.shape) != shapes[name]:
             raise ValueError(f"rasterize: {name} must be {shapes[name]}, not {list(value.shape)}")
-        bad = int((~torch.isfinite(value.detach())).reshape(n, -1).any(1).sum()) if n else 0
+        if value.is_cuda or not n:
+            continue
+        bad = int((~torch.isfinite(value.detach())).reshape(n, -1).any(1).sum())
         if bad:
             raise NumericalError(
                 f"rasterize: {name} not finite (NaN or infinite) for {bad:,} of {n:,} "

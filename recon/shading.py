@@ -34,25 +34,65 @@ def fibonacci_directions(n: int) -> torch.Tensor:
 
 def cube_lookup(faces: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
     """Bilinear values [..., C] of a cube map ``faces`` [6, C, S, S] (+x, -x, +y, -y, +z, -z)
-    in world directions [..., 3]."""
+    in world directions [..., 3] (as grid_sample with align_corners=False and border padding
+    on the face each ray lands on). On the CPU, for directions that take no gradient, one
+    compiled pass (recon/_cube_cpu.py)."""
+    if faces.device.type == "cpu" and not dirs.requires_grad:
+        from evcap.recon._cube_cpu import cube_lookup_cpu
+
+        return cube_lookup_cpu(faces, dirs)
     shape = dirs.shape[:-1]
-    d = dirs.reshape(-1, 3)
+    face, uv = _cube_coordinates(dirs.reshape(-1, 3))
+    out = _bilinear(_texels(faces), face, uv, faces.shape[-1], 0)
+    return out.reshape(*shape, faces.shape[1])
+
+
+def _cube_coordinates(d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The face [N] each direction [N, 3] lands on, and where on it [N, 2] in [-1, 1]: the two
+    other coordinates over the major one."""
     axis = d.abs().argmax(1)
     major = d.gather(1, axis[:, None]).squeeze(1)
     face = axis * 2 + (major < 0)
-    # the two other coordinates over the major one: where on that face the ray lands
     others = torch.tensor([[1, 2], [0, 2], [0, 1]], device=d.device)[axis]
-    uv = d.gather(1, others) / major.abs().clamp_min(1e-12)[:, None]
-    out = torch.zeros(len(d), faces.shape[1], dtype=faces.dtype, device=d.device)
-    for f in range(6):
-        sel = face == f
-        if sel.any():
-            grid = uv[sel].reshape(1, 1, -1, 2)
-            texels = F.grid_sample(
-                faces[f : f + 1], grid, align_corners=False, padding_mode="border"
-            )
-            out[sel] = texels[0, :, 0].T
-    return out.reshape(*shape, faces.shape[1])
+    return face, d.gather(1, others) / major.abs().clamp_min(1e-12)[:, None]
+
+
+def _texels(faces: torch.Tensor) -> torch.Tensor:
+    """[6 S S, C] a cube map's texels, face by face, row by row."""
+    return faces.permute(0, 2, 3, 1).reshape(-1, faces.shape[1])
+
+
+def _bilinear(
+    texels: torch.Tensor,
+    face: torch.Tensor,
+    uv: torch.Tensor,
+    size: int | torch.Tensor,
+    offset: int | torch.Tensor,
+) -> torch.Tensor:
+    """[N, C] bilinear reads of faces of ``size`` texels a side (an int, or one per read [N])
+    starting at row ``offset`` of ``texels``, at ``uv`` [N, 2] of ``face`` [N]: four gathers and
+    their weights, so that no step waits on the device (grid_sample needs the reads of each face
+    picked out first)."""
+    if isinstance(size, int):
+        size = torch.full_like(face, size)
+    s = size[:, None].to(uv.dtype)
+    p = (((uv + 1) * s - 1) / 2).clamp(min=0)
+    p = torch.minimum(p, s - 1)  # border: the edge texels continue outwards
+    corner = torch.minimum(p.floor(), (s - 2).clamp(min=0))
+    frac = p - corner
+    x, y = corner.long().unbind(1)
+    row = offset + (face * size + y) * size
+    step_x = (size > 1).long()
+    step_y = step_x * size
+    top = row + x
+    fx, fy = frac[:, :1], frac[:, 1:]
+
+    def read(index: torch.Tensor) -> torch.Tensor:
+        return texels.index_select(0, index)
+
+    upper = read(top) * (1 - fx) + read(top + step_x) * fx
+    lower = read(top + step_y) * (1 - fx) + read(top + step_y + step_x) * fx
+    return upper * (1 - fy) + lower * fy
 
 
 def cube_directions(size: int) -> torch.Tensor:
@@ -89,13 +129,16 @@ def prefiltered(levels: list[torch.Tensor], dirs: torch.Tensor, roughness: torch
     level = torch.log2((size * alpha / (math.pi / 2)).clamp(min=1)).clamp(max=len(levels) - 1)
     lo = level.floor().long()
     frac = (level - lo)[:, None]
-    out = torch.zeros(len(dirs), 3, dtype=dirs.dtype, device=dirs.device)
-    for i, faces in enumerate(levels):
-        w = torch.where(lo[:, None] == i, 1 - frac, 0) + torch.where(lo[:, None] == i - 1, frac, 0)
-        sel = (w > 0).squeeze(1)
-        if sel.any():
-            out[sel] = out[sel] + w[sel] * cube_lookup(faces, dirs[sel])
-    return out
+    hi = (lo + 1).clamp(max=len(levels) - 1)
+    device = dirs.device
+    sizes = torch.tensor([f.shape[-1] for f in levels], device=device)
+    offsets = torch.tensor([0] + [6 * f.shape[-1] ** 2 for f in levels[:-1]], device=device)
+    offsets = offsets.cumsum(0)
+    texels = torch.cat([_texels(f) for f in levels])
+    face, uv = _cube_coordinates(dirs)
+    low = _bilinear(texels, face, uv, sizes[lo], offsets[lo])
+    high = _bilinear(texels, face, uv, sizes[hi], offsets[hi])
+    return low * (1 - frac) + high * frac
 
 
 @functools.cache
@@ -129,9 +172,16 @@ def dfg_table(size: int = 32, samples: int = 4096) -> torch.Tensor:
     return torch.stack([a, b], -1).float()
 
 
+@functools.cache
+def _dfg_image(device: torch.device) -> torch.Tensor:
+    """The DFG table [1, 2, n.v, roughness] on ``device``, copied there once (a copy a call
+    would make the GPU wait for the host)."""
+    return dfg_table().permute(2, 0, 1)[None].contiguous().to(device)
+
+
 def split_sum(ndv: torch.Tensor, roughness: torch.Tensor) -> torch.Tensor:
     """F0 A + B [N] from the DFG table, bilinear in (n.v, roughness)."""
-    table = dfg_table().to(ndv.device).permute(2, 0, 1)[None]  # [1, 2, n.v, roughness]
+    table = _dfg_image(ndv.device)
     grid = torch.stack([roughness * 2 - 1, ndv * 2 - 1], -1).reshape(1, 1, -1, 2)
     ab = F.grid_sample(table, grid, align_corners=False, padding_mode="border")[0, :, 0]
     return F0 * ab[0] + ab[1]

@@ -24,6 +24,16 @@ def davis346_calibrations() -> Path:
 
 
 @pytest.fixture(scope="session")
+def method_summary() -> str:
+    """reference/method.md (the reconstruction method's equations and constants), its lines
+    joined."""
+    path = SHARED / "reference" / "method.md"
+    if not path.exists():
+        pytest.skip(f"the method's summary is not at {path} (set EVCAP_SHARED)")
+    return " ".join(path.read_text().split())
+
+
+@pytest.fixture(scope="session")
 def sample_aedat4() -> Path:
     if not SAMPLE_AEDAT4.exists():
         pytest.skip(f"the real DAVIS346 sample is not at {SAMPLE_AEDAT4} (set EVCAP_SHARED)")

@@ -274,14 +274,14 @@ def test_stage_two_losses_leave_out_the_ablated_terms(stage_one):
     weights = {int(f): torch.ones(data.grid.height, data.grid.width) for f in frames}
 
     @torch.no_grad()
-    def target(frame: int, T: np.ndarray) -> torch.Tensor:
-        return radiance.render(T, data.grid).color
+    def target(frame: int) -> torch.Tensor:
+        return radiance.render_view(data.viewmats()[frame], data.grid).color
 
     def losses(ablate: frozenset) -> tuple[float, dict[str, float]]:
         total, terms = material._losses(
             field, data, config, mconfig, frames, target, weights, ablate
         )
-        return total.item(), terms
+        return total.item(), {k: float(v) for k, v in terms.items()}
 
     total, terms = losses(frozenset())
     weighted = {"distill": mconfig.distill_weight, "anchor": mconfig.anchor_weight}

@@ -330,6 +330,23 @@ def test_cli_writes_a_reconstruction(color_session, tmp_path):
     assert "render_psnr_cc" in r.stdout and "base_color_psnr_cc" in r.stdout
 
 
+def test_the_papers_run_completes_both_stages(color_session, tmp_path):
+    """`--preset paper` as a user runs it, its 30,000 + 10,000 steps cut to 50 + 20: 100,000
+    Gaussians, degree-3 harmonics, the full scale, both stages, on the CPU."""
+    out = tmp_path / "paper"
+    args = ["reconstruct", str(color_session), "-o", str(out), "--preset", "paper"]
+    args += ["--iterations", "50", "--material-iterations", "20"]
+    r = subprocess.run([sys.executable, "-m", "evcap", *args], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["preset"] == "paper" and metrics["iterations"] == 50
+    assert metrics["material_iterations"] == 20 and not metrics["interrupted"]
+    assert metrics["gaussians"] > 50_000  # the paper's start, not pruned away in 50 steps
+    config = tomllib.loads((out / "config.toml").read_text())
+    assert config["radiance"]["sh_degree"] == 3 and config["material"]["edge_frames"] == 200
+    assert np.isfinite(metrics["base_color_psnr_cc"])
+
+
 def test_stage_one_settings_over_the_preset(color_session, tmp_path):
     settings = {"zero_events": "bound", "spread_weight": 10.0, "iterations": 9}
     reconstruct(
@@ -378,13 +395,13 @@ def test_coarse_to_fine_renders_the_first_part_of_the_run_small(color_session, m
     with Session.open(color_session) as session:
         data = load_training_data(session, config, "cpu")
     widths: list[int] = []
-    render = RadianceField.render
+    render = RadianceField.render_view
 
-    def spy(self, T, grid, *args, **kwargs):
+    def spy(self, viewmat, grid, *args, **kwargs):
         widths.append(grid.width)
-        return render(self, T, grid, *args, **kwargs)
+        return render(self, viewmat, grid, *args, **kwargs)
 
-    monkeypatch.setattr(RadianceField, "render", spy)
+    monkeypatch.setattr(RadianceField, "render_view", spy)
     train_radiance(data, config)
     half = 2 * config.views_per_step  # the renders of the first two of four steps
     assert data.coarse_grid.width < data.grid.width

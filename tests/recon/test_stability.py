@@ -117,14 +117,8 @@ def test_log_of_zero_and_negative_radiance_is_finite():
 
 def windows_from_codes(codes, times, starts, width=4, height=3, c=0.2):
     n = width * height
-    return EventWindows(
-        width,
-        height,
-        np.asarray(times, np.int64),
-        np.asarray(codes, np.int32),
-        np.asarray(starts, np.int64),
-        torch.full((n,), c),
-        torch.full((n,), c),
+    return EventWindows.from_codes(
+        width, height, times, codes, starts, torch.full((n,), c), torch.full((n,), c)
     )
 
 

@@ -1,0 +1,88 @@
+"""shading.cube_lookup on the CPU, compiled, for directions that take no gradient (a render's
+pixels, the shading's fixed directions): each direction's face, its four texels and their
+bilinear weights found in one pass, and the faces' gradient summed in another (in the
+directions' order, on one thread: the same sums every run). shading.cube_lookup's gathers in
+PyTorch are the reference, and what runs on a GPU or when the directions need a gradient
+(pose refinement).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import torch
+
+
+@numba.njit(cache=True, inline="always")
+def _taps(x, y, z, size):
+    """(face, row and column of the top-left texel, the column and row fractions) of the
+    bilinear read in direction (x, y, z), as grid_sample with align_corners=False and border
+    padding on the face the direction lands on."""
+    ax, ay, az = abs(x), abs(y), abs(z)
+    if ax >= ay and ax >= az:  # the first of equal axes, as argmax
+        major, u, v, axis = x, y, z, 0
+    elif ay >= az:
+        major, u, v, axis = y, x, z, 1
+    else:
+        major, u, v, axis = z, x, y, 2
+    face = 2 * axis + (1 if major < 0 else 0)
+    m = max(abs(major), 1e-12)
+    u, v = u / m, v / m
+    s = float(size)
+    px = min(max(((u + 1) * s - 1) / 2, 0.0), s - 1)
+    py = min(max(((v + 1) * s - 1) / 2, 0.0), s - 1)
+    cx = min(math.floor(px), max(s - 2, 0.0))
+    cy = min(math.floor(py), max(s - 2, 0.0))
+    return face, int(cy), int(cx), px - cx, py - cy
+
+
+@numba.njit(cache=True, parallel=True)
+def _lookup(faces, dirs, out):
+    size = faces.shape[-1]
+    step = 1 if size > 1 else 0
+    for i in numba.prange(dirs.shape[0]):
+        f, r, c, fx, fy = _taps(dirs[i, 0], dirs[i, 1], dirs[i, 2], size)
+        for ch in range(faces.shape[1]):
+            upper = faces[f, ch, r, c] * (1 - fx) + faces[f, ch, r, c + step] * fx
+            lower = faces[f, ch, r + step, c] * (1 - fx) + faces[f, ch, r + step, c + step] * fx
+            out[i, ch] = upper * (1 - fy) + lower * fy
+
+
+@numba.njit(cache=True)
+def _lookup_backward(size, dirs, grad, v_faces):
+    step = 1 if size > 1 else 0
+    for i in range(dirs.shape[0]):
+        f, r, c, fx, fy = _taps(dirs[i, 0], dirs[i, 1], dirs[i, 2], size)
+        for ch in range(grad.shape[1]):
+            g = grad[i, ch]
+            v_faces[f, ch, r, c] += g * (1 - fx) * (1 - fy)
+            v_faces[f, ch, r, c + step] += g * fx * (1 - fy)
+            v_faces[f, ch, r + step, c] += g * (1 - fx) * fy
+            v_faces[f, ch, r + step, c + step] += g * fx * fy
+
+
+class _CubeLookup(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, faces, dirs):
+        d = np.ascontiguousarray(dirs.detach().reshape(-1, 3).numpy(), dtype=np.float64)
+        f = np.ascontiguousarray(faces.detach().numpy(), dtype=np.float64)
+        out = np.empty((len(d), faces.shape[1]))
+        _lookup(f, d, out)
+        ctx.state = (d, faces.shape, faces.dtype)
+        return torch.from_numpy(out).to(faces.dtype).reshape(*dirs.shape[:-1], faces.shape[1])
+
+    @staticmethod
+    def backward(ctx, grad):
+        d, shape, dtype = ctx.state
+        g = np.ascontiguousarray(grad.detach().reshape(len(d), -1).numpy(), dtype=np.float64)
+        v_faces = np.zeros(tuple(shape))
+        _lookup_backward(shape[-1], d, g, v_faces)
+        return torch.from_numpy(v_faces).to(dtype), None
+
+
+def cube_lookup_cpu(faces: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    """cube_lookup's values [..., C] of ``faces`` [6, C, S, S] in directions [..., 3] (no
+    gradient reaches the directions)."""
+    return _CubeLookup.apply(faces, dirs)
