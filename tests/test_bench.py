@@ -13,6 +13,7 @@ from evcap.sim.simulate import simulate
 BENCH = Path(__file__).resolve().parent.parent / "bench"
 sys.path.insert(0, str(BENCH))
 
+
 @pytest.fixture(scope="module")
 def session(tiny_scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("bench") / "session.h5"
