@@ -1,7 +1,7 @@
 """shading.cube_lookup on the CPU, compiled, for directions that take no gradient (a render's
 pixels, the shading's fixed directions): each direction's face, its four texels and their
-bilinear weights found in one pass, and the faces' gradient summed in another (in the
-directions' order, on one thread: the same sums every run). shading.cube_lookup's gathers in
+bilinear weights found in one pass, and the faces' gradient summed in another (a channel
+per thread, in the directions' order: the same sums every run). shading.cube_lookup's gathers in
 PyTorch are the reference, and what runs on a GPU or when the directions need a gradient
 (pose refinement).
 """
@@ -39,23 +39,29 @@ def _taps(x, y, z, size):
 
 
 @numba.njit(cache=True, parallel=True)
-def _lookup(faces, dirs, out):
+def _lookup(faces, dirs, out, taps, fractions):
+    """out [N, C]: the reads; taps [N, 3] (face, row, column of the top-left texel) and
+    fractions [N, 2] (column, row) kept for the backward pass."""
     size = faces.shape[-1]
     step = 1 if size > 1 else 0
     for i in numba.prange(dirs.shape[0]):
         f, r, c, fx, fy = _taps(dirs[i, 0], dirs[i, 1], dirs[i, 2], size)
+        taps[i, 0], taps[i, 1], taps[i, 2] = f, r, c
+        fractions[i, 0], fractions[i, 1] = fx, fy
         for ch in range(faces.shape[1]):
             upper = faces[f, ch, r, c] * (1 - fx) + faces[f, ch, r, c + step] * fx
             lower = faces[f, ch, r + step, c] * (1 - fx) + faces[f, ch, r + step, c + step] * fx
             out[i, ch] = upper * (1 - fy) + lower * fy
 
 
-@numba.njit(cache=True)
-def _lookup_backward(size, dirs, grad, v_faces):
-    step = 1 if size > 1 else 0
-    for i in range(dirs.shape[0]):
-        f, r, c, fx, fy = _taps(dirs[i, 0], dirs[i, 1], dirs[i, 2], size)
-        for ch in range(grad.shape[1]):
+@numba.njit(cache=True, parallel=True)
+def _lookup_backward(taps, fractions, grad, v_faces):
+    """The faces' gradient, a channel per thread, each summed in the directions' order."""
+    step = 1 if v_faces.shape[-1] > 1 else 0
+    for ch in numba.prange(grad.shape[1]):
+        for i in range(taps.shape[0]):
+            f, r, c = taps[i, 0], taps[i, 1], taps[i, 2]
+            fx, fy = fractions[i, 0], fractions[i, 1]
             g = grad[i, ch]
             v_faces[f, ch, r, c] += g * (1 - fx) * (1 - fy)
             v_faces[f, ch, r, c + step] += g * fx * (1 - fy)
@@ -69,16 +75,17 @@ class _CubeLookup(torch.autograd.Function):
         d = np.ascontiguousarray(dirs.detach().reshape(-1, 3).numpy(), dtype=np.float64)
         f = np.ascontiguousarray(faces.detach().numpy(), dtype=np.float64)
         out = np.empty((len(d), faces.shape[1]))
-        _lookup(f, d, out)
-        ctx.state = (d, faces.shape, faces.dtype)
+        taps, fractions = np.empty((len(d), 3), np.int64), np.empty((len(d), 2))
+        _lookup(f, d, out, taps, fractions)
+        ctx.state = (taps, fractions, faces.shape, faces.dtype)
         return torch.from_numpy(out).to(faces.dtype).reshape(*dirs.shape[:-1], faces.shape[1])
 
     @staticmethod
     def backward(ctx, grad):
-        d, shape, dtype = ctx.state
-        g = np.ascontiguousarray(grad.detach().reshape(len(d), -1).numpy(), dtype=np.float64)
+        taps, fractions, shape, dtype = ctx.state
+        g = np.ascontiguousarray(grad.detach().reshape(len(taps), -1).numpy(), dtype=np.float64)
         v_faces = np.zeros(tuple(shape))
-        _lookup_backward(shape[-1], d, g, v_faces)
+        _lookup_backward(taps, fractions, g, v_faces)
         return torch.from_numpy(v_faces).to(dtype), None
 
 
