@@ -14,7 +14,8 @@ the session's truth (steps a minute over the whole run, object PSNR, normals, de
 the same comparison at the same figures.
 
     python bench/steps.py [SESSION.h5] [--scene single_object] [--preset fast]
-        [--device cpu] [--backend cpu] [--from 450] [--steps 200] [--baseline 8aa6cd6]
+        [--device cpu] [--backend cpu] [--resolution 1] [--from 450] [--steps 200]
+        [--baseline 8aa6cd6]
 """
 
 from __future__ import annotations
@@ -138,7 +139,7 @@ def measure(args: argparse.Namespace) -> dict:
     if args.threads:
         torch.set_num_threads(args.threads)
     timed = "timer" in inspect.signature(train_radiance).parameters
-    config = cfg.preset(args.preset)
+    config = cfg.preset(args.preset, **_resolution(args))
     mconfig = cfg.material_preset(args.preset)
     backend = args.backend or ("cpu" if args.device == "cpu" else "gsplat")
     out: dict = {"stage_1_from": args.start, "stage_1_steps": args.steps}
@@ -209,6 +210,7 @@ def measure_full(args: argparse.Namespace) -> dict:
             device=args.device,
             backend=args.backend,
             seed=args.seed,
+            **_resolution(args),
         )
         seconds = time.perf_counter() - start
     measured = result.figures.measured()
@@ -218,6 +220,11 @@ def measure_full(args: argparse.Namespace) -> dict:
     out["stage_1_training_steps_per_min"] = 60 * result.iterations / training
     out.update({k: measured[k] for k in FIGURES if k in measured})
     return out
+
+
+def _resolution(args: argparse.Namespace) -> dict:
+    """The render scale asked for, over the preset's."""
+    return {} if args.resolution is None else {"resolution": args.resolution}
 
 
 def run_baseline(args: argparse.Namespace) -> dict:
@@ -240,6 +247,8 @@ def _forwarded(args: argparse.Namespace) -> list[str]:
     line += ["--material-from", str(args.material_from), "--threads", str(args.threads)]
     if args.backend:
         line += ["--backend", args.backend]
+    if args.resolution is not None:
+        line += ["--resolution", str(args.resolution)]
     if args.full:
         line.append("--full")
     return line
@@ -253,6 +262,7 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--backend", help="the rasterizer (default: the device's)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--resolution", type=float, help="render scale (default: the preset's)")
     parser.add_argument("--from", dest="start", type=int, default=450)
     parser.add_argument("--steps", type=int, default=200)
     parser.add_argument("--material-from", type=int, default=50)
@@ -289,6 +299,7 @@ def main(argv: list[str] | None = None) -> dict:
         "preset": args.preset,
         "device": args.device,
         "backend": args.backend or "default",
+        "resolution": args.resolution or "preset",
         **figures,
     }
     if args.baseline:

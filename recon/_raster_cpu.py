@@ -908,18 +908,10 @@ class _Rasterize(torch.autograd.Function):
     def backward(ctx, v_color, v_depth, v_alpha, v_normal):
         view, (means, quats, scales), projection, tiles, result, alpha, D = ctx.state
         pixels = len(alpha)
-        v_out = np.zeros((pixels, result.values.shape[1]))  # at the compositing's width
-        v_alpha = _grad(v_alpha, (pixels,))
-        if v_color is not None:
-            v_out[:, :D] = v_color.detach().reshape(pixels, D).numpy()
-        if v_normal is not None:
-            v_out[:, D + 1 : D + 4] = v_normal.detach().reshape(pixels, 3).numpy()
-        if v_depth is not None:
-            v_depth = _np(v_depth)
-            a = np.maximum(alpha, DEPTH_ALPHA_MIN)
-            v_out[:, D] = v_depth / a
-            v_alpha -= np.where(alpha >= DEPTH_ALPHA_MIN, v_depth * result.out[:, D] / a**2, 0)
-        per = composite_backward(tiles, result, v_out, v_alpha)
+        v_out, v_alpha_all = np.empty((pixels, result.values.shape[1])), np.empty(pixels)
+        grads = [_pixels(v, pixels) for v in (v_color, v_depth, v_alpha, v_normal)]
+        _pixel_gradients(*grads, alpha, result.out, D, v_out, v_alpha_all)
+        per = composite_backward(tiles, result, v_out, v_alpha_all)
         v_means, v_quats, v_scales, v_view = project_backward(
             means,
             quats,
@@ -950,8 +942,32 @@ def _back(x: np.ndarray, like: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(x, dtype=dtype)).to(like.device, like.dtype)
 
 
-def _grad(v: torch.Tensor | None, shape: tuple[int, ...]) -> np.ndarray:
-    return np.zeros(shape) if v is None else _np(v)
+def _pixels(v: torch.Tensor | None, pixels: int) -> np.ndarray:
+    """An output's gradient as [H * W, channels] (no copy on the CPU); [0, 0] for none."""
+    if v is None:
+        return np.zeros((0, 0), np.float32)
+    return v.detach().reshape(pixels, -1).cpu().numpy()
+
+
+@numba.njit(cache=True, parallel=True)
+def _pixel_gradients(v_color, v_depth, v_alpha, v_normal, alpha, out, D, v_out, v_alpha_all):
+    """d/d(each pixel's composited values [H * W, lanes]) and d/d(its alpha) from the
+    gradients of color, expected depth (sum w z / alpha), alpha and normal ([0, 0] for an
+    output that has none)."""
+    for p in numba.prange(len(alpha)):
+        for c in range(v_out.shape[1]):
+            v_out[p, c] = 0.0
+        for c in range(v_color.shape[1]):
+            v_out[p, c] = v_color[p, c]
+        for c in range(v_normal.shape[1]):
+            v_out[p, D + 1 + c] = v_normal[p, c]
+        v_a = v_alpha[p, 0] if v_alpha.shape[0] else 0.0
+        if v_depth.shape[0]:
+            a = max(alpha[p], DEPTH_ALPHA_MIN)
+            v_out[p, D] = v_depth[p, 0] / a
+            if alpha[p] >= DEPTH_ALPHA_MIN:
+                v_a -= v_depth[p, 0] * out[p, D] / (a * a)
+        v_alpha_all[p] = v_a
 
 
 def _follow_torch_threads() -> None:

@@ -35,7 +35,9 @@ class Densifier:
         g = render.means2d.grad
         if g is None:
             return
-        g = g.reshape(-1, 2).detach() * torch.tensor([width / 2, height / 2], device=g.device)
+        g = g.reshape(-1, 2).detach()
+        # the two scales as numbers: a tensor of them copied to a GPU would wait for it
+        g = torch.stack([g[:, 0] * (width / 2), g[:, 1] * (height / 2)], 1)
         self._fit(len(g), g.device)
         seen = render.visible.to(g.dtype)  # as weights, not an index: no wait for the device
         self.grad_sum += g.norm(dim=1) * seen

@@ -14,6 +14,7 @@ camera, ``K`` has the pixel centres at integer coordinates (as OpenCV calibratio
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import assert_never
 
@@ -133,8 +134,8 @@ def _check_inputs(means, quats, scales, opacities, features) -> None:
     for name, value in {**values, "features": features}.items():
         if list(value.shape) != shapes[name]:
             raise ValueError(f"rasterize: {name} must be {shapes[name]}, not {list(value.shape)}")
-        if value.is_cuda or not n:
-            continue
+        if value.is_cuda or not n or math.isfinite(float(value.detach().sum())):
+            continue  # a sum is finite only if every term is: one pass, the count only then
         bad = int((~torch.isfinite(value.detach())).reshape(n, -1).any(1).sum())
         if bad:
             raise NumericalError(

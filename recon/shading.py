@@ -13,6 +13,7 @@ each weighted by the visibility baked for the Gaussian and by the cosine.
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 
 import torch
@@ -53,7 +54,9 @@ def _cube_coordinates(d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     axis = d.abs().argmax(1)
     major = d.gather(1, axis[:, None]).squeeze(1)
     face = axis * 2 + (major < 0)
-    others = torch.tensor([[1, 2], [0, 2], [0, 1]], device=d.device)[axis]
+    # the two other axes: [1, 2], [0, 2] or [0, 1] (made from the axis, not copied from the
+    # host: a copy to a GPU waits for it)
+    others = torch.stack([(axis == 0).long(), 2 - (axis == 2).long()], 1)
     return face, d.gather(1, others) / major.abs().clamp_min(1e-12)[:, None]
 
 
@@ -130,15 +133,20 @@ def prefiltered(levels: list[torch.Tensor], dirs: torch.Tensor, roughness: torch
     lo = level.floor().long()
     frac = (level - lo)[:, None]
     hi = (lo + 1).clamp(max=len(levels) - 1)
-    device = dirs.device
-    sizes = torch.tensor([f.shape[-1] for f in levels], device=device)
-    offsets = torch.tensor([0] + [6 * f.shape[-1] ** 2 for f in levels[:-1]], device=device)
-    offsets = offsets.cumsum(0)
+    sizes, offsets = _level_layout(tuple(f.shape[-1] for f in levels), dirs.device)
     texels = torch.cat([_texels(f) for f in levels])
     face, uv = _cube_coordinates(dirs)
     low = _bilinear(texels, face, uv, sizes[lo], offsets[lo])
     high = _bilinear(texels, face, uv, sizes[hi], offsets[hi])
     return low * (1 - frac) + high * frac
+
+
+@functools.cache
+def _level_layout(sizes: tuple[int, ...], device: torch.device) -> tuple[torch.Tensor, ...]:
+    """Each mip level's size and first texel row in the levels' texels, on ``device`` (made
+    once: a copy to a GPU waits for it)."""
+    offsets = list(itertools.accumulate((6 * s**2 for s in sizes[:-1]), initial=0))
+    return torch.tensor(sizes, device=device), torch.tensor(offsets, device=device)
 
 
 @functools.cache
