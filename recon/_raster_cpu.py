@@ -817,15 +817,14 @@ def _to_lanes(x: np.ndarray) -> np.ndarray:
 _scratch = threading.local()
 
 
-def _reused(name: str, shape: tuple[int, int]) -> np.ndarray:
-    """An uninitialised float64 array of ``shape``, in memory this thread keeps between calls
-    under ``name``: fresh pages cost their first touch (the intersections' gradient rows are
-    tens of MB: 4 of a backward pass's 41 ms, measured at 15k Gaussians and 341 x 257)."""
+def _reused(shape: tuple[int, int]) -> np.ndarray:
+    """An uninitialised float64 array of ``shape``, in memory this thread keeps between calls:
+    fresh pages cost their first touch (the intersections' gradient rows are tens of MB: 4 of
+    a backward pass's 41 ms, measured at 15k Gaussians and 341 x 257)."""
     size = shape[0] * shape[1]
-    held = getattr(_scratch, name, None)
+    held = getattr(_scratch, "grads", None)
     if held is None or held.size < size:
-        held = np.empty(max(size, 1))
-        setattr(_scratch, name, held)
+        held = _scratch.grads = np.empty(max(size, 1))
     return held[:size].reshape(shape)
 
 
@@ -854,7 +853,7 @@ def composite_backward(
     """[N, 6 + C]: d/d(means2d, conics, opacity, values) from d/d(out [H * W, C], alpha)."""
     channels = v_out.shape[1]
     v_out = _to_lanes(v_out)
-    grads = _reused("grads", (len(tiles.owner), SPLAT + v_out.shape[1]))
+    grads = _reused((len(tiles.owner), SPLAT + v_out.shape[1]))
     _composite_bwd(
         tiles.layout(),
         result.terms,
