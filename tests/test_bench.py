@@ -40,6 +40,19 @@ def test_steps_measures_each_stage_and_its_parts(session, monkeypatch, tmp_path)
     assert written["stage_1_steps_per_s"] == figures["stage_1_steps_per_s"]
 
 
+def test_steps_full_runs_the_whole_stage_and_scores_it(session, monkeypatch, tmp_path):
+    import _common
+    import steps
+
+    monkeypatch.setattr(_common, "RESULTS", tmp_path)
+    args = [str(session), "--preset", "tiny", "--resolution", "0.2", "--full", "--name", "full"]
+    figures = steps.main(args)
+    assert figures["resolution"] == 0.2
+    assert figures["stage_1_steps_per_min"] > 0
+    assert figures["stage_1_training_steps_per_min"] >= figures["stage_1_steps_per_min"]
+    assert figures["object_psnr_cc"] > 0 and figures["object_psnr_constant"] > 0
+
+
 def test_steps_runs_another_checkout_in_a_process_of_its_own(session):
     """`--baseline` measures another commit's tree with its own code: here this checkout's own
     tree, imported from its folders as an exported commit's would be."""
