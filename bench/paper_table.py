@@ -1,60 +1,82 @@
-"""The method's own benchmark: a NeRF-Synthetic scene (mic) through `evcap simulate
---from-images` and stage I of `evcap reconstruct`, beside the method's Table 1.
+"""The method's Table 1, our row beside it: a scene laid out as the NeRF-Synthetic release through
+`evcap simulate --from-images` and both stages of `evcap reconstruct`, every held-out view scored.
 
-    .venv/bin/python bench/paper_table.py [--data ../shared/data/nerf-synthetic-mic]
-        [--scale 0.4] [--preset fast] [--seed 5] [--device cpu]
+    .venv/bin/python bench/paper_table.py SCENE_DIR [--preset fast] [--scale 1] [--seeds 0 1 2]
+        [--device cpu] [--backend B] [--iterations N] [--material-iterations N]
+        [--lpips-weights ALEXNET.pth LINEAR_HEADS.pth]
 
-The camera moves through transforms_test.json's views (the 360-degree orbit); the held-out
-views are 8 of transforms_train.json's (other directions, never used for events). Before the
-reconstruction, the truth itself is checked: the decoded depth of path views 10 apart must
-agree where they see the same point (the encoding, see evcap.sim.from_images.decode_depth),
-and so must the normals derived from it. Any scene laid out as the release is (--data
-../nerf_synthetic/lego) runs unchanged. Writes results/paper_table-<scene>.{json,md}.
+Protocol. The events come from the scene's continuous path, transforms_test.json's orbit (the
+sensor at the images' size times --scale); every view of transforms_train.json is held out (other
+directions, never seen by the events) and scored:
+- render: stage II's physically based render, the whole image over the release's white backdrop
+  (the paper's "rendered image"): PSNR (the mean over the views of each view's), SSIM, LPIPS;
+- normal MAE: stage II's shading normals against the normals derived from the release's depth,
+  where the truth has a surface; depth error: a share of the distance there;
+- beside them stage I's radiance, whole image and on the object's pixels, with what the best
+  constant color scores there;
+- base color: the release has no albedo, so it cannot be scored.
+Raw figures first; then after one gain per color channel (no offset: the events leave only
+that undetermined), fitted once over all held-out views together. An affine fit per view is
+given as a diagnostic only (`_affine_per_view`): it also forgives haze.
+
+Before the reconstruction the truth itself is checked: the decoded depth of path views 10
+apart must agree where they see the same point, and so must the normals derived from it.
+Each seed's figures go to results/paper_table/<scene>-<preset>-x<scale>-seed<N>.json and are
+read back, not rerun, by a later call with the same settings (--rerun to redo them); the
+table, mean and spread over the seeds, to results/paper_table-<scene>.{json,md}.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
 
 import numpy as np
-from _common import RESULTS, machine, markdown_table
+import torch
+from _common import RESULTS, machine
 
-from evcap.recon.reconstruct import reconstruct
-from evcap.records import GroundTruth
+from evcap.images import fit_color_correction, fit_gain, srgb
+from evcap.recon.evaluate import render_views
+from evcap.recon.export import load_checkpoint, load_material_checkpoint
+from evcap.recon.lpips import Lpips
+from evcap.recon.metrics import depth_rel_err, normal_mae_deg, psnr, ssim_map
+from evcap.recon.optics import SensorOptics
+from evcap.recon.reconstruct import pick_device, reconstruct
+from evcap.records import GroundTruth, TruthViews
 from evcap.session import Session
 from evcap.sim.from_images import rays, simulate_from_images
 
-# The method's Table 1 (reference/method.md): normal MAE, base colour PSNR, render PSNR.
+# The method's Table 1 (reference/method.md): per scene normal MAE, base colour PSNR and render
+# PSNR; SSIM and LPIPS are given for the 7-scene mean only.
 METHOD = {
-    scene: dict(zip(("normal_mae_deg", "base_color_psnr", "render_psnr"), values, strict=True))
-    for scene, values in {
-        "chair": (27.47, 23.35, 24.77),
-        "drums": (25.89, 18.40, 20.06),
-        "ficus": (40.24, 27.36, 23.51),
-        "hotdog": (19.16, 22.41, 19.77),
-        "lego": (29.12, 20.79, 22.75),
-        "materials": (34.67, 19.92, 19.54),
-        "mic": (25.97, 23.92, 24.36),
-        "7-scene mean": (28.93, 22.31, 22.11),
-    }.items()
+    "chair": (27.47, 23.35, 24.77),
+    "drums": (25.89, 18.40, 20.06),
+    "ficus": (40.24, 27.36, 23.51),
+    "hotdog": (19.16, 22.41, 19.77),
+    "lego": (29.12, 20.79, 22.75),
+    "materials": (34.67, 19.92, 19.54),
+    "mic": (25.97, 23.92, 24.36),
+    "7-scene mean": (28.93, 22.31, 22.11),
 }
-METHOD_RUN = {"resolution": "800 x 800", "iterations": "30,000 + 10,000", "device": "A5000 GPU"}
+METHOD_MEAN_EXTRA = {"render_ssim": 0.902, "render_lpips": 0.105}
+METHOD_RUN = "30,000 + 10,000 steps, 800 x 800, A5000 GPU"
+NO_ALBEDO = "n/a (no albedo in the release)"
+NO_LPIPS = "n/a (no weights)"
+
+# the table's columns: (heading, the figure's key in a row)
 COLUMNS = (
-    "row",
-    "preset",
-    "resolution",
-    "iterations",
-    "seconds",
-    "render_psnr",
-    "render_psnr_cc",
-    "object_psnr_cc",
-    "object_psnr_constant",
-    "normal_mae_deg",
-    "depth_rel_err",
-    "base_color_psnr",
+    ("row", "row"),
+    ("render PSNR", "render_psnr"),
+    ("render SSIM", "render_ssim"),
+    ("render LPIPS", "render_lpips"),
+    ("normal MAE (deg)", "normal_mae_deg"),
+    ("depth err", "depth_rel_err"),
+    ("base color PSNR", "base_color_psnr"),
+    ("object PSNR", "object_psnr"),
+    ("constant color on the object", "object_psnr_constant"),
 )
 
 
@@ -67,6 +89,7 @@ def truth_agreement(session: Path, apart: int = 10) -> dict:
         truth = GroundTruth.read(s, along_path=True)
     depth, normal, poses, K = truth.path.depth, truth.path.normal, truth.path.T_world_cam, truth.K
     h, w = depth.shape[1:]
+    apart = max(1, min(apart, len(depth) // 3))  # a short path: views closer together
     ray = rays(K, h, w)
     dz, angles = [], []
     for i in range(0, len(depth) - apart, apart):
@@ -94,65 +117,288 @@ def truth_agreement(session: Path, apart: int = 10) -> dict:
     }
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    here = Path(__file__).resolve().parent
-    ap.add_argument("--data", type=Path, default=here.parents[1] / "shared/data/nerf-synthetic-mic")
-    ap.add_argument("--scale", type=float, default=0.4)
-    ap.add_argument("--preset", default="fast")
-    ap.add_argument("--seed", type=int, default=5)
-    ap.add_argument("--device", default="cpu")
-    args = ap.parse_args()
-    name = args.data.name.removeprefix("nerf-synthetic-")
-    session = RESULTS / "sessions" / f"{name}-x{args.scale:g}.h5"
+def image_figures(
+    pred: np.ndarray, truth: np.ndarray, prefix: str, lpips: Lpips | None
+) -> dict[str, float | str]:
+    """Whole-image figures of linear renders [N, H, W, 3]: PSNR (the mean of each view's), SSIM
+    and LPIPS raw, then after one gain per channel fitted over all views (``_gain``); the PSNR
+    after an affine fit per view (``_affine_per_view``, a diagnostic)."""
+    out: dict[str, float | str] = {}
+    seen = srgb(truth)
+    gain = fit_gain(pred, truth)
+    for name, image in (("", pred), ("_gain", pred * gain)):
+        shown = srgb(image)
+        views = zip(shown, seen, strict=True)
+        out[f"{prefix}_psnr{name}"] = float(np.mean([psnr(a, b) for a, b in views]))
+        out[f"{prefix}_ssim{name}"] = float(ssim_map(shown, seen).mean())
+        out[f"{prefix}_lpips{name}"] = NO_LPIPS if lpips is None else lpips(shown, seen)
+    per_view = []
+    for a, b in zip(pred, truth, strict=True):
+        cc = fit_color_correction(a, b)
+        per_view.append(psnr(srgb(a * cc[:, 0] + cc[:, 1]), srgb(b)))
+    out[f"{prefix}_psnr_affine_per_view"] = float(np.mean(per_view))
+    out[f"{prefix}_gain_rgb"] = [round(float(g), 4) for g in gain]
+    return out
+
+
+def object_figures(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict[str, float]:
+    """Stage I's radiance on the object's pixels of all views together, raw and after the
+    gain fitted there, beside the best constant color there."""
+    seen = srgb(truth)[mask]
+    gain = fit_gain(pred[mask], truth[mask])
+    return {
+        "object_psnr": psnr(srgb(pred)[mask], seen),
+        "object_psnr_gain": psnr(srgb(pred[mask] * gain), seen),
+        "object_psnr_constant": psnr(np.broadcast_to(seen.mean(0), seen.shape), seen),
+    }
+
+
+def score(
+    out: Path, session: Path, device: str, backend: str, lpips: Lpips | None
+) -> dict[str, float | str]:
+    """Both stages' checkpoints in OUT rendered at every held-out view and scored."""
+    if (out / "poses.h5").exists():
+        raise SystemExit(f"{out}: stage I refined the poses; the table scores views at the truth's")
+    with Session.open(session) as s:
+        truth: TruthViews = GroundTruth.read(s).held_out_views()
+        optics = SensorOptics.from_session(s)
+    mask = truth.object_mask()
+    figures: dict[str, float | str] = {"views": len(truth)}
+    radiance, _ = load_checkpoint(out / "checkpoint" / "radiance.pt", device, backend)
+    stage_1 = render_views(radiance, truth.T_world_cam, optics, device)
+    figures.update(image_figures(stage_1["radiance"], truth.radiance, "radiance", lpips))
+    figures.update(object_figures(stage_1["radiance"], truth.radiance, mask))
+    figures["radiance_normal_mae_deg"] = normal_mae_deg(stage_1["normal"], truth.normal)
+    figures["depth_rel_err"] = depth_rel_err(stage_1["depth"], truth.depth)
+    del stage_1, radiance
+    material = load_material_checkpoint(out / "checkpoint" / "material.pt", device, backend)
+    stage_2 = render_views(material, truth.T_world_cam, optics, device)
+    figures.update(image_figures(stage_2["radiance"], truth.radiance, "render", lpips))
+    figures["normal_mae_deg"] = normal_mae_deg(stage_2["normal"], truth.normal)
+    figures["base_color_psnr"] = NO_ALBEDO if truth.base_color is None else math.nan
+    return figures
+
+
+def simulated(scene: Path, scale: float) -> Path:
+    """The scene's events at ``scale``, simulated once into results/sessions/."""
+    session = RESULTS / "sessions" / f"{scene_name(scene)}-x{scale:g}.h5"
     if not session.exists():
         session.parent.mkdir(parents=True, exist_ok=True)
-        print(f"simulating {name} at x{args.scale:g} (once) ...", flush=True)
-        t = time.time()
+        print(f"simulating {scene.name} at x{scale:g} (once) ...", flush=True)
+        started = time.perf_counter()
         n = simulate_from_images(
-            args.data / "transforms_test.json",
+            scene / "transforms_test.json",
             session,
-            held_out=args.data / "transforms_train.json",
-            scale=args.scale,
+            held_out=scene / "transforms_train.json",
+            scale=scale,
         )
-        print(f"{n:,} events, {time.time() - t:.0f} s", flush=True)
-    check = truth_agreement(session)
-    print(json.dumps(check), flush=True)
-    out = RESULTS / "fields" / f"{name}-{args.preset}"
-    t = time.time()
-    figures = reconstruct(
+        print(f"{n:,} events, {time.perf_counter() - started:.0f} s", flush=True)
+    return session
+
+
+def scene_name(scene: Path) -> str:
+    return scene.resolve().name.removeprefix("nerf-synthetic-")
+
+
+def run_seed(session: Path, args: argparse.Namespace, seed: int, lpips: Lpips | None) -> dict:
+    """One seed's run (both stages) and its figures; read back when it was run already."""
+    settings = {
+        "preset": args.preset,
+        "scale": args.scale,
+        "iterations": args.iterations,
+        "material_iterations": args.material_iterations,
+        "device": args.device,
+        "backend": args.backend,
+        "lpips": lpips is not None,
+    }
+    name = f"{scene_name(args.scene)}-{args.preset}-x{args.scale:g}-seed{seed}"
+    path = RESULTS / "paper_table" / f"{name}.json"
+    if path.exists() and not args.rerun:
+        done = json.loads(path.read_text())
+        if done["settings"] == settings:
+            print(f"seed {seed}: read from {path}", flush=True)
+            return done
+    out = RESULTS / "fields" / name
+    progress = Progress(f"seed {seed}")
+    result = reconstruct(
         session,
         out,
         preset=args.preset,
-        seed=args.seed,
+        seed=seed,
         device=args.device,
-        stage="radiance",
+        backend=args.backend,
+        iterations=args.iterations,
+        material_iterations=args.material_iterations,
         overwrite=True,
+        resume=False,
+        progress=progress,
     )
-    seconds = time.time() - t
+    started = time.perf_counter()
+    figures = score(out, session, args.device, result.backend, lpips)
+    run = {
+        "seed": seed,
+        "settings": settings,
+        "backend": result.backend,
+        "iterations": result.iterations,
+        "material_iterations": result.material_iterations,
+        "gaussians": result.gaussians,
+        "stage_1_seconds": result.seconds,
+        "stage_2_seconds": result.material_seconds,
+        "scoring_seconds": time.perf_counter() - started,
+        "figures": figures,
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(run, indent=2))
+    print(f"seed {seed}: -> {path}", flush=True)
+    return run
+
+
+class Progress:
+    """Prints a run's step every 500 and the time since it started."""
+
+    def __init__(self, label: str) -> None:
+        self.label, self.started = label, time.perf_counter()
+
+    def __call__(self, step: int, total: int, text: str) -> None:
+        if step % 500 == 0 or step == total:
+            elapsed = time.perf_counter() - self.started
+            print(f"  {self.label} {elapsed:6.0f} s: step {step} of {total}: {text}", flush=True)
+
+
+def summary(runs: list[dict]) -> dict[str, dict]:
+    """Each figure over the seeds: {"mean", "std", "values"} (text figures as they are)."""
+    out = {}
+    for key, first in runs[0]["figures"].items():
+        values = [r["figures"][key] for r in runs]
+        if isinstance(first, str | list):
+            out[key] = {"mean": first, "std": None, "values": values}
+        else:
+            out[key] = {
+                "mean": float(np.mean(values)),
+                "std": float(np.std(values, ddof=1)) if len(values) > 1 else None,
+                "values": values,
+            }
+    return out
+
+
+def table(name: str, label: str, figures: dict[str, dict]) -> str:
+    """Our rows (raw, gain-corrected; stage I beside them) and the method's, as Markdown."""
+
+    def cell(key: str) -> str:
+        if key not in figures:
+            return ""
+        f = figures[key]
+        if isinstance(f["mean"], str):
+            return f["mean"]
+        text = f"{f['mean']:.3g}" if abs(f["mean"]) < 100 else f"{f['mean']:.0f}"
+        return text if f["std"] is None else f"{text} ± {f['std']:.2g}"
+
+    def row(title: str, keys: dict[str, str]) -> str:
+        return "| " + " | ".join([title, *(cell(keys.get(k, "")) for _, k in COLUMNS[1:])]) + " |"
+
+    same = {k: k for _, k in COLUMNS}
+    gain = {k: f"{k}_gain" for k in ("render_psnr", "render_ssim", "render_lpips")}
+    stage_1 = {f"render_{m}": f"radiance_{m}" for m in ("psnr", "ssim", "lpips")}
+    stage_1["normal_mae_deg"] = "radiance_normal_mae_deg"
+    stage_1["object_psnr"] = "object_psnr"
+    stage_1["object_psnr_constant"] = "object_psnr_constant"
+    stage_1_gain = {k: f"{v}_gain" for k, v in stage_1.items() if k.startswith("render_")}
+    stage_1_gain["object_psnr"] = "object_psnr_gain"
+    stage_1_gain["object_psnr_constant"] = "object_psnr_constant"
+    lines = [
+        "| " + " | ".join(h for h, _ in COLUMNS) + " |",
+        "|" + "---|" * len(COLUMNS),
+        row(f"evcap, {name}, {label}: raw", {**same, "object_psnr": ""}),
+        row(
+            "  after one gain per channel (all views)",
+            {**gain, "normal_mae_deg": "normal_mae_deg", "depth_rel_err": "depth_rel_err"},
+        ),
+        row("  stage I radiance, raw", {**stage_1, "depth_rel_err": "depth_rel_err"}),
+        row("  stage I radiance, gain", stage_1_gain),
+    ]
+    for scene in (name, "7-scene mean"):
+        if scene in METHOD:
+            normal, base, render = METHOD[scene]
+            extra = METHOD_MEAN_EXTRA if scene == "7-scene mean" else {}
+            values = {"render_psnr": render, "normal_mae_deg": normal, "base_color_psnr": base}
+            values.update(extra)
+            cells = [f"{values[k]:.3g}" if k in values else "" for _, k in COLUMNS[1:]]
+            lines.append("| " + " | ".join([f"method, {scene} ({METHOD_RUN})", *cells]) + " |")
+    diagnostic = figures.get("render_psnr_affine_per_view")
+    if diagnostic is not None:
+        lines.append("")
+        lines.append(
+            f"Diagnostic only: render PSNR after an affine fit per view "
+            f"{diagnostic['mean']:.3g} dB (stage I: "
+            f"{figures['radiance_psnr_affine_per_view']['mean']:.3g} dB)."
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("scene", type=Path, help="a folder laid out as the NeRF-Synthetic release")
+    ap.add_argument("--scale", type=float, default=1.0, help="the sensor's size / the images'")
+    ap.add_argument("--preset", default="fast")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--backend")
+    ap.add_argument("--iterations", type=int, help="stage I's steps (default: the preset's)")
+    ap.add_argument("--material-iterations", type=int, help="stage II's (the preset's)")
+    ap.add_argument(
+        "--lpips-weights",
+        type=Path,
+        nargs="+",
+        help="the torchvision AlexNet state dict and LPIPS's linear heads (one file or two)",
+    )
+    ap.add_argument("--rerun", action="store_true", help="redo seeds whose figures are kept")
+    args = ap.parse_args(argv)
+    for needed in ("transforms_test.json", "transforms_train.json"):
+        if not (args.scene / needed).is_file():
+            raise SystemExit(f"{args.scene}: no {needed}; give a folder laid out as NeRF-Synthetic")
+    args.device = pick_device(args.device)
+    name = scene_name(args.scene)
+    lpips = Lpips(*args.lpips_weights, device=args.device) if args.lpips_weights else None
+    session = simulated(args.scene, args.scale)
+    check = truth_agreement(session)
+    print(json.dumps(check), flush=True)
+    runs = [run_seed(session, args, seed, lpips) for seed in args.seeds]
     with Session.open(session) as s:
         h, w = s.sensor.height, s.sensor.width
-    ours = {
-        "row": f"evcap, {name}",
-        "preset": args.preset,
-        "resolution": f"{w} x {h}",
-        "iterations": figures.get("iterations"),
-        "seconds": round(seconds),
-        **{k: figures.get(k) for k in COLUMNS if k in figures},
+    first = runs[0]
+    minutes = [(r["stage_1_seconds"] + r["stage_2_seconds"]) / 60 for r in runs]
+    label = (
+        f"{args.preset}, {w} x {h}, {first['iterations']:,} + {first['material_iterations']:,} "
+        f"steps, seeds {' '.join(map(str, args.seeds))}, {np.mean(minutes):.0f} min a run on "
+        f"{describe_device(args.device)}"
+    )
+    figures = summary(runs)
+    text = table(name, label, figures)
+    print(text)
+    doc = {
+        "benchmark": "paper_table",
+        "scene": name,
+        "label": label,
+        "machine": machine(),
+        "truth": check,
+        "figures": figures,
+        "runs": runs,
+        "method": {"run": METHOD_RUN, "scenes": METHOD, "mean_extra": METHOD_MEAN_EXTRA},
     }
-    rows = [ours] + [
-        {"row": f"method, {scene}", "preset": "paper", **METHOD_RUN, **values}
-        for scene, values in METHOD.items()
-        if scene in (name, "7-scene mean")
-    ]
-    table = markdown_table(rows, COLUMNS)
-    print(table)
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / f"paper_table-{name}.md").write_text(table)
-    doc = {"benchmark": "paper_table", "machine": machine(), "truth": check, "rows": rows}
+    (RESULTS / f"paper_table-{name}.md").write_text(text)
     path = RESULTS / f"paper_table-{name}.json"
     path.write_text(json.dumps(doc, indent=2))
-    print(f"-> {path}")
+    print(f"-> {path}, .md")
+    return doc
+
+
+def describe_device(device: str) -> str:
+    import os
+
+    if device == "cuda":
+        return torch.cuda.get_device_name()
+    return f"{os.cpu_count()} CPU cores"
 
 
 if __name__ == "__main__":

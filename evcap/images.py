@@ -32,6 +32,14 @@ def fit_color_correction(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return out
 
 
+def fit_gain(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """[C] gain per channel that best maps ``pred`` onto ``gt`` (least squares, no offset):
+    all that events leave undetermined of a radiance."""
+    p = pred.reshape(-1, pred.shape[-1]).astype(np.float64)
+    g = gt.reshape(-1, gt.shape[-1]).astype(np.float64)
+    return (p * g).sum(0) / np.maximum((p * p).sum(0), 1e-30)
+
+
 def read_image_linear(path: Path) -> np.ndarray:
     """An image as linear RGB float (HDR files as they are, 8/16-bit ones from sRGB)."""
     import cv2

@@ -1,7 +1,10 @@
+import functools
+import json
 import os
 import textwrap
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -108,6 +111,81 @@ def tiny_scene(tmp_path_factory):
         return path
 
     return make
+
+
+def _write_nerf_dataset(
+    tiny_scene,
+    folder,
+    views=9,
+    degrees=24.0,
+    height=0.6,
+    name="transforms",
+    depth=True,
+    images=None,
+):
+    """Renders of a small scene along an orbit, written as a NeRF-Synthetic dataset: RGBA
+    images (alpha: the sphere), depth renders in the release's encoding (1 - distance / 8).
+    ``images``: the images' path under ``folder`` without the view's number (``test/r_``)."""
+    import cv2
+
+    from evcap.sim.from_images import BLENDER_TO_OPENCV
+    from evcap.sim.render import Renderer
+    from evcap.sim.scene import load_scene
+    from evcap.sim.trajectory import Trajectory
+
+    scene = load_scene(
+        tiny_scene(
+            trajectory=f'kind = "orbit"\nradius = 2.2\nheight = {height}\n'
+            f"degrees = {degrees}\nduration_s = 1.0"
+        )
+    )
+    r, traj = Renderer(scene), Trajectory(scene.trajectory)
+    frames = []
+    images = images or f"{name}_"
+    (folder / images).parent.mkdir(parents=True, exist_ok=True)
+    truth = []
+    for k in range(views):
+        T = traj.pose(k / (views - 1))
+        full = r.render_full(T)
+        truth.append(full)
+        img = np.clip(full["radiance"], 0, 1)
+        srgb = np.where(img <= 0.0031308, img * 12.92, 1.055 * img ** (1 / 2.4) - 0.055)
+        alpha = (full["depth"] > 0)[..., None]
+        rgba = np.concatenate([srgb[..., ::-1], alpha], -1)
+        cv2.imwrite(str(folder / f"{images}{k}.png"), (rgba * 255 + 0.5).astype(np.uint8))
+        yy, xx = np.mgrid[0:36, 0:48]
+        ray = np.sqrt(((xx - 23.5) / 45.0) ** 2 + ((yy - 17.5) / 45.0) ** 2 + 1)
+        v = np.where(full["depth"] > 0, 1 - full["depth"] * ray / 8, 0)
+        if depth:
+            cv2.imwrite(
+                str(folder / f"{images}{k}_depth_0186.png"), np.round(v * 255).astype(np.uint8)
+            )
+        frames.append(
+            {"file_path": f"./{images}{k}", "transform_matrix": (T @ BLENDER_TO_OPENCV).tolist()}
+        )
+    angle = 2 * np.arctan(48 / 2 / 45.0)
+    path = folder / f"{name}.json"
+    path.write_text(json.dumps({"camera_angle_x": angle, "frames": frames}))
+    return path, truth
+
+
+@pytest.fixture(scope="session")
+def write_nerf_dataset(tiny_scene):
+    """write_nerf_dataset(folder, ...): renders of the tiny scene along an orbit, written as a
+    NeRF-Synthetic dataset; (the transforms file, each view's truth)."""
+    return functools.partial(_write_nerf_dataset, tiny_scene)
+
+
+@pytest.fixture(scope="session")
+def nerf_scene(write_nerf_dataset, tmp_path_factory) -> Path:
+    """A tiny scene laid out as the NeRF-Synthetic release: an orbit in transforms_test.json
+    (test/r_*.png with depth renders), two other views in transforms_train.json."""
+    data = tmp_path_factory.mktemp("nerf") / "nerf-synthetic-sphere"
+    write_nerf_dataset(data, name="transforms_test", images="test/r_")
+    write_nerf_dataset(
+        data, views=2, height=0.9, name="transforms_train", depth=False, images="train/r_"
+    )
+    return data
 
 
 # A calibration recording (tests/calib, tests/poses): a 5 x 4 ChArUco board,

@@ -7,11 +7,8 @@ import sys
 import numpy as np
 
 from evcap.session import Session
-from evcap.sim.from_images import BLENDER_TO_OPENCV, interpolate, simulate_from_images
-from evcap.sim.render import Renderer
-from evcap.sim.scene import load_scene
+from evcap.sim.from_images import interpolate, simulate_from_images
 from evcap.sim.sensor import ChannelMap
-from evcap.sim.trajectory import Trajectory
 
 
 def test_flow_interpolation_follows_the_motion():
@@ -31,59 +28,8 @@ def test_flow_interpolation_follows_the_motion():
     assert np.abs(mid[inner] - truth[inner]).mean() < 0.02
 
 
-def write_dataset(
-    folder,
-    tiny_scene,
-    views=9,
-    degrees=24.0,
-    height=0.6,
-    name="transforms",
-    depth=True,
-    images=None,
-):
-    """Renders of a small scene along an orbit, written as a NeRF-Synthetic dataset: RGBA
-    images (alpha: the sphere), depth renders in the release's encoding (1 - distance / 8).
-    ``images``: the images' path under ``folder`` without the view's number (``test/r_``)."""
-    import cv2
-
-    scene = load_scene(
-        tiny_scene(
-            trajectory=f'kind = "orbit"\nradius = 2.2\nheight = {height}\n'
-            f"degrees = {degrees}\nduration_s = 1.0"
-        )
-    )
-    r, traj = Renderer(scene), Trajectory(scene.trajectory)
-    frames = []
-    images = images or f"{name}_"
-    (folder / images).parent.mkdir(parents=True, exist_ok=True)
-    truth = []
-    for k in range(views):
-        T = traj.pose(k / (views - 1))
-        full = r.render_full(T)
-        truth.append(full)
-        img = np.clip(full["radiance"], 0, 1)
-        srgb = np.where(img <= 0.0031308, img * 12.92, 1.055 * img ** (1 / 2.4) - 0.055)
-        alpha = (full["depth"] > 0)[..., None]
-        rgba = np.concatenate([srgb[..., ::-1], alpha], -1)
-        cv2.imwrite(str(folder / f"{images}{k}.png"), (rgba * 255 + 0.5).astype(np.uint8))
-        yy, xx = np.mgrid[0:36, 0:48]
-        ray = np.sqrt(((xx - 23.5) / 45.0) ** 2 + ((yy - 17.5) / 45.0) ** 2 + 1)
-        v = np.where(full["depth"] > 0, 1 - full["depth"] * ray / 8, 0)
-        if depth:
-            cv2.imwrite(
-                str(folder / f"{images}{k}_depth_0186.png"), np.round(v * 255).astype(np.uint8)
-            )
-        frames.append(
-            {"file_path": f"./{images}{k}", "transform_matrix": (T @ BLENDER_TO_OPENCV).tolist()}
-        )
-    angle = 2 * np.arctan(48 / 2 / 45.0)
-    path = folder / f"{name}.json"
-    path.write_text(json.dumps({"camera_angle_x": angle, "frames": frames}))
-    return path, truth
-
-
-def test_events_from_images(tiny_scene, tmp_path):
-    transforms, truth = write_dataset(tmp_path / "data", tiny_scene)
+def test_events_from_images(write_nerf_dataset, tmp_path):
+    transforms, truth = write_nerf_dataset(tmp_path / "data")
     out = tmp_path / "s.h5"
     n = simulate_from_images(transforms, out, fps=10)
     assert n > 200
@@ -121,8 +67,8 @@ def angle_deg(a, b, where):
     return np.degrees(np.arccos(np.clip(cos, -1, 1)))
 
 
-def test_normals_from_the_depth_renders(tiny_scene, tmp_path):
-    transforms, truth = write_dataset(tmp_path / "data", tiny_scene)
+def test_normals_from_the_depth_renders(write_nerf_dataset, tmp_path):
+    transforms, truth = write_nerf_dataset(tmp_path / "data")
     simulate_from_images(transforms, tmp_path / "s.h5", fps=10)
     with Session.open(tmp_path / "s.h5") as s:
         g = s.group("gt")
@@ -133,10 +79,10 @@ def test_normals_from_the_depth_renders(tiny_scene, tmp_path):
     assert np.median(err) < 8  # 8-bit depth over a 48-pixel sphere
 
 
-def test_held_out_views_from_another_file(tiny_scene, tmp_path):
-    path, _ = write_dataset(tmp_path / "data", tiny_scene)
-    other, truth = write_dataset(
-        tmp_path / "data", tiny_scene, views=3, degrees=20.0, height=0.9, name="other", depth=False
+def test_held_out_views_from_another_file(write_nerf_dataset, tmp_path):
+    path, _ = write_nerf_dataset(tmp_path / "data")
+    other, truth = write_nerf_dataset(
+        tmp_path / "data", views=3, degrees=20.0, height=0.9, name="other", depth=False
     )
     out = tmp_path / "s.h5"
     simulate_from_images(path, out, held_out=other, fps=10, background=0.0)
@@ -157,14 +103,13 @@ def test_held_out_views_from_another_file(tiny_scene, tmp_path):
     assert np.median(angle_deg(normal, truth[1]["normal"], known)) < 10
 
 
-def test_a_scene_laid_out_as_the_release_through_the_commands(tiny_scene, tmp_path):
+def test_a_scene_laid_out_as_the_release_through_the_commands(write_nerf_dataset, tmp_path):
     """What a user runs on any NeRF-Synthetic scene: the orbit of transforms_test.json as the
     path, views of transforms_train.json held out, then stage I scored on the object."""
     data = tmp_path / "nerf-synthetic-sphere"
-    write_dataset(data, tiny_scene, name="transforms_test", images="test/r_")
-    write_dataset(
+    write_nerf_dataset(data, name="transforms_test", images="test/r_")
+    write_nerf_dataset(
         data,
-        tiny_scene,
         views=2,
         height=0.9,
         name="transforms_train",
