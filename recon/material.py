@@ -274,8 +274,10 @@ def plane_normals(
     out = []
     for idx in found.split(chunk):
         nb = ref[idx] - ref[idx].mean(1, keepdim=True)
-        _, vectors = torch.linalg.eigh(nb.transpose(1, 2) @ nb)
-        out.append(vectors[:, :, 0])
+        # on the CPU: CUDA's batched eigh stopped stage II on an H100 (torch 2.11 + CUDA 13,
+        # CUSOLVER_STATUS_INTERNAL_ERROR on 116k Gaussians); 3 x 3 matrices cost little here
+        _, vectors = torch.linalg.eigh((nb.transpose(1, 2) @ nb).cpu().double())
+        out.append(vectors[:, :, 0].to(means))
     return torch.cat(out)
 
 
