@@ -42,16 +42,29 @@ def markdown_table(rows: list[dict], columns: tuple[str, ...]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def scene_file(scene: str) -> Path:
+    """The scene file of ``scene``: one of the simulator's example scenes by name, or a path."""
+    return Path(scene) if scene.endswith(".toml") else SCENES / f"{scene}.toml"
+
+
+def scene_label(scene: str) -> str:
+    """A scene's name in tables and folder names: an example scene's, or a file's stem."""
+    return Path(scene).stem
+
+
 def session_of(scene: str) -> Path:
-    """The simulator's example scene, simulated once into results/sessions/ (again when the
-    renderer has changed since)."""
+    """The session of ``scene``: a session file (.h5) as it is; a scene (an example scene's
+    name, or a .toml) simulated once into results/sessions/ (again when the renderer has
+    changed since)."""
     from evcap.records import GroundTruth
     from evcap.session import Session
     from evcap.sim.render import RENDERER_VERSION
     from evcap.sim.scene import load_scene
     from evcap.sim.simulate import simulate
 
-    path = RESULTS / "sessions" / f"{scene}.h5"
+    if scene.endswith(".h5"):
+        return Path(scene)
+    path = RESULTS / "sessions" / f"{scene_label(scene)}.h5"
     if path.exists():  # made by an older renderer: its truth is not today's
         with Session.open(path, validate=False) as s:
             stale = GroundTruth.read(s).renderer_version != RENDERER_VERSION
@@ -60,5 +73,5 @@ def session_of(scene: str) -> Path:
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         print(f"simulating {scene} (once) ...", flush=True)
-        simulate(load_scene(SCENES / f"{scene}.toml"), path)
+        simulate(load_scene(scene_file(scene)), path)
     return path

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _common import RESULTS, SCENES, machine, session_of
+from _common import RESULTS, machine, scene_file, scene_label, session_of
 
 import evcap.recon.material as material
 import evcap.recon.radiance as radiance
@@ -85,7 +85,7 @@ TRUTH_OPACITY = 0.95
 
 def surface_samples(scene: str, count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """``count`` points spread over the scene's surfaces by area, with the faces' normals."""
-    mesh, _, _ = build_mesh(load_scene(SCENES / f"{scene}.toml"))
+    mesh, _, _ = build_mesh(load_scene(scene_file(scene)))
     a, b, c = (mesh.vertices[mesh.faces[:, i]] for i in range(3))
     cross = np.cross(b - a, c - a)
     area = np.linalg.norm(cross, axis=1) / 2
@@ -103,7 +103,7 @@ def truth_gaussians(scene: str, sh_degree: int) -> Gaussians:
     """Flat opaque discs on the truth's surfaces, facing along the surface normal, each as wide
     as the mean spacing of the samples, mid-gray."""
     points, normals = surface_samples(scene, TRUTH_GAUSSIANS)
-    mesh, _, _ = build_mesh(load_scene(SCENES / f"{scene}.toml"))
+    mesh, _, _ = build_mesh(load_scene(scene_file(scene)))
     a, b, c = (mesh.vertices[mesh.faces[:, i]] for i in range(3))
     spacing = np.sqrt(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum() / 2 / len(points))
     n = np.where(normals[:, 2:] < 0, -normals, normals)  # a disc is two-sided
@@ -146,7 +146,7 @@ SUN_WIDTH_DEG = 4.0
 def truth_light_image(scene: str, width: int = 512) -> np.ndarray:
     """The scene's environment as a latitude-longitude image, its sun a narrow lobe of the
     sun's irradiance (the simulator's sun is a disc half a degree wide: no cube map holds it)."""
-    env = Environment(load_scene(SCENES / f"{scene}.toml").lighting)
+    env = Environment(load_scene(scene_file(scene)).lighting)
     table = env.table(width)
     h = width // 2
     lat = (0.5 - (np.arange(h) + 0.5) / h) * np.pi
@@ -186,7 +186,7 @@ def cell(v: object) -> str:
     return "" if v is None else str(v)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--scenes", nargs="+", default=["single_object", "multi_object"])
     parser.add_argument("--preset", default="tiny")
@@ -213,14 +213,15 @@ def main() -> None:
         help="stage II learns the light, or holds it at the truth's",
     )
     parser.add_argument("--work", type=Path, help="keep the runs in this folder (default: none)")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     rows, stage_one = [], {}
     forced = {"visibility": "on", "indirect": "on"} if args.effects == "on" else {}
     with tempfile.TemporaryDirectory() as scratch:
         tmp = args.work or scratch
         for scene in args.scenes:
             session = session_of(scene)
-            base = Path(tmp) / scene
+            label = scene_label(scene)
+            base = Path(tmp) / label
             started = time.perf_counter()
             truth = args.geometry == "truth"
             with starting_on_truth(scene) if truth else nullcontext():
@@ -233,7 +234,7 @@ def main() -> None:
                     iterations=args.iterations,
                     radiance_settings=TRUTH_GEOMETRY if truth else None,
                 )
-            stage_one[scene] = {
+            stage_one[label] = {
                 "object_psnr_cc": first.figures.object_psnr_cc,
                 "object_psnr_constant": first.figures.object_psnr_constant,
                 "render_psnr_cc": first.figures.render_psnr_cc,
@@ -246,7 +247,7 @@ def main() -> None:
                 effect = SWITCHES_EFFECT.get(name)
                 if effect and full_effects is not None and not full_effects[effect]:
                     continue  # the full model left it out already on this scene
-                out = Path(tmp) / f"{scene}-{name.replace(' ', '-')}"
+                out = Path(tmp) / f"{label}-{name.replace(' ', '-')}"
                 shutil.copytree(base, out)
                 with truth_light(scene) if args.light == "truth" else nullcontext():
                     result = reconstruct(
@@ -263,7 +264,7 @@ def main() -> None:
                     full_effects = result.effects
                 on = ",".join(k for k, v in result.effects.items() if v)
                 found = {k: v for k, v in result.to_json().items() if k != "training_log"}
-                row = {"scene": scene, "variant": name, **found, "effects": on}
+                row = {"scene": label, "variant": name, **found, "effects": on}
                 rows.append(row)
                 print(" ".join(f"{c}={cell(row.get(c))}" for c in COLUMNS), flush=True)
     lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]

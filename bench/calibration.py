@@ -3,7 +3,7 @@ DAVIS346 calibration as its camera; threshold spread, hot pixels and noise on), 
 without its APS frames, and on the real DAVIS346 recording (hot pixels and noise only: it shows
 no board). Prints the figures and writes results/calibration.json.
 
-    python bench/calibration.py [--scene charuco_board] [--real PATH.aedat4]
+    python bench/calibration.py [--scene charuco_board] [--board SPEC] [--real PATH.aedat4]
 """
 
 from __future__ import annotations
@@ -20,12 +20,14 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import report, session_of  # noqa: E402
 
+from evcap.calib.board import DEFAULT_BOARD, Board, parse_board  # noqa: E402
+
 SAMPLE = (
     Path(__file__).resolve().parents[2] / "shared/data/davis346-sample/davis346_test_data.aedat4"
 )
 
 
-def against_truth(path: Path, frames: bool) -> dict:
+def against_truth(path: Path, frames: bool, board: Board = DEFAULT_BOARD) -> dict:
     """Calibrate the session (or a copy without its frames) and compare with its /gt."""
     from evcap.calib.calibrate import calibrate
     from evcap.records import GroundTruth
@@ -42,7 +44,7 @@ def against_truth(path: Path, frames: bool) -> dict:
         else:
             path_used = path
         t0 = time.perf_counter()
-        cal = calibrate(path_used)
+        cal = calibrate(path_used, board=board)
         seconds = time.perf_counter() - t0
     with Session.open(path) as s:
         truth = GroundTruth.read(s)
@@ -108,18 +110,19 @@ def real_recording(aedat4: Path) -> dict:
     }
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scene", default="charuco_board")
+    ap.add_argument("--board", type=parse_board, default=DEFAULT_BOARD, help="the scene's board")
     ap.add_argument("--real", type=Path, default=SAMPLE)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     from evcap.errors import CalibrationError
 
     path = session_of(args.scene)
     figures = {"scene": args.scene}
-    figures.update(against_truth(path, frames=True))
+    figures.update(against_truth(path, frames=True, board=args.board))
     try:
-        figures.update(against_truth(path, frames=False))
+        figures.update(against_truth(path, frames=False, board=args.board))
     except CalibrationError as e:
         figures["events_only_error"] = str(e)
     if args.real.exists():

@@ -1,10 +1,11 @@
 """How long `evcap --help` takes from the shell (median of several runs).
 
-.venv/bin/python bench/cli_startup.py
+.venv/bin/python bench/cli_startup.py [--runs 10]
 """
 
 from __future__ import annotations
 
+import argparse
 import statistics
 import subprocess
 import sys
@@ -13,9 +14,12 @@ import time
 from _common import report
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--runs", type=int, default=10)
+    args = parser.parse_args(argv)
     times = []
-    for _ in range(10):
+    for _ in range(args.runs):
         start = time.perf_counter()
         subprocess.run([sys.executable, "-m", "evcap", "--help"], check=True, capture_output=True)
         times.append(time.perf_counter() - start)

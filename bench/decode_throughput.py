@@ -32,14 +32,14 @@ def best_time(data: bytes, n_events: int, piece: int, rounds: int = 3) -> tuple[
     return best, counters
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seconds", type=float, default=2.0, help="stream length (device time)")
     parser.add_argument("--piece", type=int, default=1 << 20, help="bytes per decode call")
     parser.add_argument(
         "--rounds", type=int, default=3, help="decodes of each stream; the fastest counts"
     )
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     data, n_events = dense_stream(args.seconds)
     events_only = StreamEncoder().encode(dense_events(args.seconds))
     StreamDecoder(Geometry()).decode(data[:4096])  # compile (or load the cached build)

@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _common import RESULTS, machine, markdown_table, session_of
+from _common import RESULTS, machine, markdown_table, scene_label, session_of
 
 from evcap.recon.reconstruct import reconstruct
 
@@ -67,7 +67,7 @@ COLUMNS = (
 
 def run(session: Path, preset: str, seed: int, args: argparse.Namespace, settings: dict) -> dict:
     with tempfile.TemporaryDirectory() as out:
-        return reconstruct(
+        result = reconstruct(
             session,
             out,
             preset=preset,
@@ -77,9 +77,10 @@ def run(session: Path, preset: str, seed: int, args: argparse.Namespace, setting
             resolution=args.resolution,
             radiance_settings=settings,
         )
+    return {k: v for k, v in result.to_json().items() if k not in ("history", "training_log")}
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--scenes", nargs="+", default=["single_object", "multi_object"])
     parser.add_argument("--preset", default="fast")
@@ -88,7 +89,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=5)
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--merge", action="store_true", help="keep the previous rows not rerun")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
 
     path = RESULTS / "geometry.json"
     kept = json.loads(path.read_text())["runs"] if args.merge and path.exists() else []
@@ -99,13 +100,13 @@ def main() -> None:
             started = time.perf_counter()
             result = run(session, args.preset, args.seed, args, VARIANTS[name])
             row = {
-                "scene": scene,
+                "scene": scene_label(scene),
                 "variant": name,
                 "preset": args.preset,
                 "seed": args.seed,
                 "resolution": args.resolution,
                 "wall_seconds": time.perf_counter() - started,
-                **{k: v for k, v in result.items() if k != "history"},
+                **result,
             }
             rows.append(row)
             print(" ".join(f"{k}={row.get(k)}" for k in COLUMNS), flush=True)
@@ -119,6 +120,7 @@ def main() -> None:
     (RESULTS / "geometry.md").write_text(table)
     print(table)
     print(f"-> {path}, .md")
+    return rows
 
 
 if __name__ == "__main__":

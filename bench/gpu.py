@@ -38,17 +38,20 @@ def progress(step: int, total: int, text: str) -> None:
         print(f"  {elapsed:6.0f} s: step {step} of {total}: {text}", flush=True)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("session", type=Path)
     parser.add_argument("--preset", default="tiny")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--backends", nargs="+", default=["gsplat", "torch", "cpu"])
     parser.add_argument("--iterations", type=int, help="stage I's steps (default: the preset's)")
-    args = parser.parse_args()
-    if not torch.cuda.is_available():
+    parser.add_argument("--material-iterations", type=int, help="stage II's (the preset's)")
+    args = parser.parse_args(argv)
+    cuda = torch.cuda.is_available()
+    if not cuda and args.backends != ["cpu"]:
         raise SystemExit("no CUDA GPU visible to PyTorch here: this benchmark is for one")
-    figures: dict = {"gpu": torch.cuda.get_device_name(), "preset": args.preset}
+    gpu = torch.cuda.get_device_name() if cuda else None
+    figures: dict = {"gpu": gpu, "preset": args.preset}
     for backend in args.backends:
         device = "cpu" if backend == "cpu" else "cuda"
         with tempfile.TemporaryDirectory() as out:
@@ -64,6 +67,7 @@ def main() -> None:
                     backend=backend,
                     seed=args.seed,
                     iterations=args.iterations,
+                    material_iterations=args.material_iterations,
                     progress=progress,
                 )
                 seconds[stage] = time.perf_counter() - start

@@ -299,7 +299,7 @@ def measure(name: str, big: Stream, small: Stream, rounds: int, tmp: Path) -> di
     return row
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--events", type=int, default=5_000_000, help="events per file")
     parser.add_argument("--warm-events", type=int, default=50_000, help="the warm-up file's")
@@ -309,7 +309,7 @@ def main() -> None:
     parser.add_argument(
         "--containers", nargs="+", choices=list(CONTAINERS), default=list(CONTAINERS)
     )
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     big, small = stream(args.events), stream(args.warm_events)
     rows = []
     for name in args.containers:

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import RESULTS, report, session_of  # noqa: E402
+from _common import RESULTS, report, scene_label, session_of  # noqa: E402
 
 FIXTURES = Path(__file__).resolve().parents[1] / "evcap" / "demo_data"
 RECONSTRUCTED = ("single_object", "demo")  # scenes whose held-out views are scored
@@ -66,6 +66,7 @@ def poses_against_truth(path: Path, work: Path, kind: str, gyro: bool) -> tuple[
     T_est = estimate.T_world_cam[inside]
     errors = pose_errors(T_est, T_true)
     by_poses = pose_errors(T_est, T_true, by="poses")
+    RESULTS.mkdir(parents=True, exist_ok=True)
     np.savez(
         RESULTS / f"poses_{path.stem}_{kind}.npz",
         t_us=estimate.t[inside],
@@ -163,7 +164,7 @@ def reconstruction_difference(
     return out
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     default = ["single_object", "charuco_board"]
     ap.add_argument("--scenes", nargs="+", default=default)
@@ -176,7 +177,7 @@ def main() -> None:
         default=[0],
         help="the reconstructions' seeds (one run each)",
     )
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     figures: dict = {"frames": args.frames, "gyro": not args.no_gyro}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
@@ -187,7 +188,8 @@ def main() -> None:
             if scene in RECONSTRUCTED:
                 part = reconstruction_difference(path, copy, work / scene, args.seeds)
                 figures.update({f"{scene}_{k}": v for k, v in part.items()})
-    name = "poses" + ("" if args.scenes == default else "_" + "_".join(args.scenes))
+    labels = "_".join(map(scene_label, args.scenes))
+    name = "poses" + ("" if args.scenes == default else f"_{labels}")
     report(name + ("_no_gyro" if args.no_gyro else ""), figures)
 
 

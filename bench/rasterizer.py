@@ -11,12 +11,13 @@ volume around it, about 1.5 render pixels across, opacities 0.05 to 0.95. The ba
 takes a fixed random weighting of every output (color, depth, alpha, normals). The runs take
 turns, round after round, and each figure is the fastest of its rounds.
 
-    .venv/bin/python bench/rasterizer.py [--quick] [--repeats N]
+    .venv/bin/python bench/rasterizer.py [--quick] [--repeats N] [--scene S] [--preset P]
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import statistics
 import time
@@ -24,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _common import RESULTS, report, session_of
+from _common import RESULTS, report, scene_label, session_of
 
 from evcap.recon.export import load_checkpoint
 from evcap.recon.optics import SensorOptics
@@ -42,17 +43,29 @@ CONFIGS = [
 ]
 
 
-def trained(n: int, width: int, height: int, channels: int, seed: int = 0):
-    """The stage-I field of the single-object scene (fitted once), from its first held-out
-    view through the sensor's pinhole scaled to width x height; n of its Gaussians at most."""
+def trained(
+    n: int,
+    width: int,
+    height: int,
+    channels: int,
+    seed: int = 0,
+    scene: str = "single_object",
+    preset: str = "fast",
+    iterations: int | None = None,
+):
+    """The stage-I field of ``scene`` at ``preset`` (fitted once), from its first held-out view
+    through the sensor's pinhole scaled to width x height; n of its Gaussians at most."""
     from evcap.recon.reconstruct import reconstruct
 
-    session = session_of("single_object")
-    out = RESULTS / "fields" / "single_object_fast"
+    session = session_of(scene)
+    steps = "" if iterations is None else f"_{iterations}"
+    out = RESULTS / "fields" / f"{scene_label(scene)}_{preset}{steps}"
     checkpoint = out / "checkpoint" / "radiance.pt"
     if not checkpoint.exists():
-        print("fitting stage I of single_object at fast (once) ...", flush=True)
-        reconstruct(session, out, preset="fast", stage="radiance", overwrite=True)
+        print(f"fitting stage I of {scene} at {preset} (once) ...", flush=True)
+        reconstruct(
+            session, out, preset=preset, stage="radiance", iterations=iterations, overwrite=True
+        )
     field, _ = load_checkpoint(Path(checkpoint))
     with Session.open(session) as s:
         poses = GroundTruth.read(s).held_out_views().T_world_cam
@@ -118,11 +131,20 @@ def sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--quick", action="store_true", help="the 173 x 130 rows only")
     parser.add_argument("--repeats", type=int, default=10, help="timed rounds per figure")
-    args = parser.parse_args()
+    parser.add_argument("--scene", default="single_object", help="the trained field's scene")
+    parser.add_argument("--preset", default="fast", help="the trained field's preset")
+    parser.add_argument("--iterations", type=int, help="the trained field's steps (preset's)")
+    args = parser.parse_args(argv)
+    fields = {
+        "trained": functools.partial(
+            trained, scene=args.scene, preset=args.preset, iterations=args.iterations
+        ),
+        "synthetic": synthetic,
+    }
     configs = [c for c in CONFIGS if not args.quick or c[1] == 173]
     threads_before = torch.get_num_threads()
     gsplat = False
@@ -132,7 +154,7 @@ def main() -> None:
         gsplat = _raster_gsplat.available()
     rows = []
     for field, width, height, n, channels in configs:
-        params, cam = (trained if field == "trained" else synthetic)(n, width, height, channels)
+        params, cam = fields[field](n, width, height, channels)
         n = len(params[0])
         # the torch backend takes seconds a view at the largest size: fewer repeats there
         repeats = args.repeats if width * height * n < 1e10 else 3

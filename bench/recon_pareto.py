@@ -23,7 +23,7 @@ import json
 import tempfile
 from pathlib import Path
 
-from _common import RESULTS, machine, markdown_table, session_of
+from _common import RESULTS, machine, markdown_table, scene_label, session_of
 
 from evcap.recon import config as cfg
 from evcap.recon.reconstruct import reconstruct
@@ -97,7 +97,7 @@ def plot(rows: list[dict], path: Path) -> None:
     fig.savefig(path, dpi=120)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--scenes", nargs="+", default=["single_object"])
     parser.add_argument("--presets", nargs="*", default=["tiny", "fast"])
@@ -107,7 +107,7 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--merge", action="store_true", help="keep the previous rows not rerun")
     parser.add_argument("--figure", type=Path, help="also write the plot here")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
 
     rows = []
     previous = RESULTS / "recon_pareto.json"
@@ -118,8 +118,8 @@ def main() -> None:
         rows.append(row)
         print(" ".join(f"{c}={row.get(c)}" for c in COLUMNS), flush=True)
 
-    for scene in args.scenes:
-        session = session_of(scene)
+    for given in args.scenes:
+        session, scene = session_of(given), scene_label(given)
         for preset in args.presets:
             result = run_one(session, preset, args.device)
             record(scene, "preset", preset, {**result, "resolution": None})
@@ -140,7 +140,7 @@ def main() -> None:
     redone = {(r["scene"], r["run"]) for r in rows}
     rows = [r for r in kept if (r["scene"], r["run"]) not in redone and not is_fast(r)] + rows
     spread = {}
-    for scene in args.scenes:
+    for scene in map(scene_label, args.scenes):
         seeded = [
             r["object_psnr_cc"]
             for r in rows
@@ -170,11 +170,12 @@ def main() -> None:
         plot(rows, RESULTS / "recon_pareto.png")
     except ImportError:
         print("no matplotlib: the plot is skipped (pip install -e '.[bench]')")
-        return
+        return rows
     if args.figure:
         args.figure.parent.mkdir(parents=True, exist_ok=True)
         plot(rows, args.figure)
     print(f"-> {RESULTS / 'recon_pareto.json'}, .md, .png")
+    return rows
 
 
 if __name__ == "__main__":

@@ -53,7 +53,7 @@ def peak_memory_mb(child: subprocess.Popen) -> float:
     return peak
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seconds", type=float, default=4.0, help="stream length (device time)")
     parser.add_argument(
@@ -65,7 +65,7 @@ def main() -> None:
     parser.add_argument(
         "--interrupt-after", type=float, default=2.0, help="seconds before the SIGINT"
     )
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     data, n_events = dense_stream(args.seconds)
     with tempfile.TemporaryDirectory() as tmp:
         fixture = Path(tmp) / "fixture"

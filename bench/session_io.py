@@ -27,11 +27,11 @@ def dense_stream(n: int, rate_hz: float, seed: int = 0) -> Events:
     return Events(x, y, t, p, 346, 260, "RGBG")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--events", type=int, default=20_000_000)
     parser.add_argument("--batch", type=int, default=100_000, help="events per append")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     ev = dense_stream(args.events, rate_hz=12e6)
     batches = [ev._take(slice(i, i + args.batch)) for i in range(0, len(ev), args.batch)]
     with tempfile.TemporaryDirectory() as tmp:

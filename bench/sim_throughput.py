@@ -1,7 +1,7 @@
 """Simulator speed at the DAVIS346's 346 x 260: time per rendered frame, events simulated per
 second, and the cost of each sensor effect (each alone, against the clean sensor).
 
-    .venv/bin/python bench/sim_throughput.py [--seconds S]
+    .venv/bin/python bench/sim_throughput.py [--seconds S] [--size 346x260]
 """
 
 from __future__ import annotations
@@ -26,9 +26,9 @@ name = "bench"
 color_filter = "RGBG"
 {effects}
 [camera]
-width = 346
-height = 260
-fx = 250.0
+width = {width}
+height = {height}
+fx = {fx}
 [trajectory]
 kind = "orbit"
 radius = 2.2
@@ -61,11 +61,24 @@ EFFECTS = {
 }
 
 
-def scene_file(folder: Path, duration: float, effect: str | None = None) -> Path:
+def scene_file(
+    folder: Path, duration: float, effect: str | None = None, size: tuple[int, int] = (346, 260)
+) -> Path:
     effects = f"[sensor.effects]\n{effect} = {EFFECTS[effect]}" if effect else ""
     path = folder / f"{effect or 'clean'}.toml"
-    # the camera circles at 60 degrees per second (about 250 pixels per second at the object)
-    path.write_text(SCENE.format(effects=effects, duration=duration, degrees=60.0 * duration))
+    # the camera circles at 60 degrees per second (about 250 pixels per second at the object at
+    # 346 x 260; the lens keeps its angle at other sizes)
+    width, height = size
+    path.write_text(
+        SCENE.format(
+            effects=effects,
+            duration=duration,
+            degrees=60.0 * duration,
+            width=width,
+            height=height,
+            fx=250.0 * width / 346,
+        )
+    )
     return path
 
 
@@ -75,13 +88,15 @@ def run(path: Path, out: Path) -> tuple[float, object]:
     return time.perf_counter() - start, stats
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seconds", type=float, default=0.25, help="scene time simulated")
-    args = parser.parse_args()
+    parser.add_argument("--size", default="346x260", help="the sensor's width x height")
+    args = parser.parse_args(argv)
+    size = tuple(int(v) for v in args.size.split("x"))
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        scene = load_scene(scene_file(folder, args.seconds))
+        scene = load_scene(scene_file(folder, args.seconds, size=size))
         renderer = Renderer(scene)
         pose = Trajectory(scene.trajectory).pose(0.0)
         renderer.render_full(pose)  # compile
@@ -91,10 +106,10 @@ def main() -> None:
             renderer.render_full(pose)
             times.append(time.perf_counter() - start)
         out = folder / "s.h5"
-        run(scene_file(folder, 0.01), out)  # warm up
-        clean_s, clean = run(scene_file(folder, args.seconds), out)
+        run(scene_file(folder, 0.01, size=size), out)  # warm up
+        clean_s, clean = run(scene_file(folder, args.seconds, size=size), out)
         figures = {
-            "resolution": "346x260",
+            "resolution": args.size,
             "render_ms_per_frame": 1000 * statistics.median(times),
             "scene_seconds": args.seconds,
             "events": clean.events,
@@ -106,7 +121,7 @@ def main() -> None:
             "stage_seconds": {k: round(v, 3) for k, v in clean.seconds.items()},
         }
         for effect in EFFECTS:
-            seconds, stats = run(scene_file(folder, args.seconds, effect), out)
+            seconds, stats = run(scene_file(folder, args.seconds, effect, size), out)
             figures[f"effect_{effect}_cost"] = seconds / clean_s
     report("sim_throughput", figures)
 

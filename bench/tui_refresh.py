@@ -34,11 +34,11 @@ async def measure(app, seconds: float, size: tuple[int, int]) -> tuple[int, floa
     return updates, elapsed
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seconds", type=float, default=2.5)
     parser.add_argument("--size", default="120x40")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     size = tuple(int(v) for v in args.size.split("x"))
     with tempfile.TemporaryDirectory() as tmp:
         fixture = Path(tmp) / "scene"

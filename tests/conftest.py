@@ -179,11 +179,11 @@ def write_nerf_dataset(tiny_scene):
 @pytest.fixture(scope="session")
 def nerf_scene(write_nerf_dataset, tmp_path_factory) -> Path:
     """A tiny scene laid out as the NeRF-Synthetic release: an orbit in transforms_test.json
-    (test/r_*.png with depth renders), two other views in transforms_train.json."""
+    (test/r_*.png with depth renders), ten other views in transforms_train.json."""
     data = tmp_path_factory.mktemp("nerf") / "nerf-synthetic-sphere"
     write_nerf_dataset(data, name="transforms_test", images="test/r_")
     write_nerf_dataset(
-        data, views=2, height=0.9, name="transforms_train", depth=False, images="train/r_"
+        data, views=10, height=0.9, name="transforms_train", depth=False, images="train/r_"
     )
     return data
 

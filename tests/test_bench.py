@@ -1,4 +1,5 @@
-"""The benchmarks under bench/ run at a tiny size, so that none breaks unseen."""
+"""The benchmarks under bench/ run at a tiny size, so that none breaks unseen: each one's main
+path through its own command line, on tiny scenes, its figures written as a bench writes them."""
 
 import json
 import subprocess
@@ -16,10 +17,70 @@ sys.path.insert(0, str(BENCH))
 
 
 @pytest.fixture(scope="module")
-def session(tiny_scene, tmp_path_factory):
+def scene(tiny_scene):
+    return tiny_scene()
+
+
+@pytest.fixture(scope="module")
+def session(scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("bench") / "session.h5"
-    simulate(load_scene(tiny_scene()), out)
+    simulate(load_scene(scene), out)
     return out
+
+
+# Every bench and the arguments of its tiny run: {scene} a tiny scene, {session} its session,
+# {board} the calibration tests' board recording, {sample} the real DAVIS346 recording. steps
+# and paper_table have tests of their own below.
+TINY = {
+    "ablation": ["--scenes", "{session}", "--iterations", "5", "--material-iterations", "2"]
+    + ["--variants", "full", "no edge TV"],
+    "batch": ["--recordings", "1", "--scene", "{scene}", "--ray-workers"],
+    "calibration": ["--scene", "{board}", "--board", "charuco:5x4:0.04:0.03:DICT_4X4_50"]
+    + ["--real", "{sample}"],
+    "cli_startup": ["--runs", "1"],
+    "decode_throughput": ["--seconds", "0.02", "--rounds", "1"],
+    "geometry": ["--scenes", "{session}", "--preset", "tiny", "--iterations", "5"]
+    + ["--variants", "base", "binary"],
+    "gpu": ["{session}", "--backends", "cpu", "--iterations", "5", "--material-iterations", "2"],
+    "import_throughput": ["--events", "20000", "--warm-events", "2000", "--rounds", "1"],
+    "poses": ["--scenes", "{board}"],
+    "rasterizer": ["--quick", "--repeats", "1", "--scene", "{session}", "--preset", "tiny"]
+    + ["--iterations", "5"],
+    "recon_pareto": ["--scenes", "{session}", "--presets", "tiny", "--iterations", "5"]
+    + ["--resolutions", "0.5", "--seeds", "1"],
+    "record_throughput": ["--seconds", "0.05"],
+    "session_io": ["--events", "20000", "--batch", "5000"],
+    "sim_throughput": ["--seconds", "0.02", "--size", "48x36"],
+    "tui_refresh": ["--seconds", "0.3", "--size", "80x24"],
+}
+OWN_TESTS = {"steps", "paper_table"}
+
+
+def test_every_bench_has_a_tiny_run():
+    benches = {p.stem for p in BENCH.glob("*.py") if not p.stem.startswith("_")}
+    assert benches == set(TINY) | OWN_TESTS
+
+
+@pytest.mark.parametrize("name", sorted(TINY))
+def test_bench_runs_at_a_tiny_size(name, request, monkeypatch, tmp_path):
+    import importlib
+
+    import _common
+
+    fixtures = {"session": "session", "board": "board_session", "sample": "sample_aedat4"}
+    fixtures["scene"] = "scene"
+    args = " ".join(TINY[name])
+    paths = {k: request.getfixturevalue(f) for k, f in fixtures.items() if f"{{{k}}}" in args}
+
+    module = importlib.import_module(name)
+    results = tmp_path / "results"
+    monkeypatch.setattr(_common, "RESULTS", results)
+    if hasattr(module, "RESULTS"):
+        monkeypatch.setattr(module, "RESULTS", results)
+    module.main([arg.format(**paths) for arg in TINY[name]])
+    written = [json.loads(p.read_text()) for p in results.glob("*.json")]
+    assert written, f"{name} wrote no figures"
+    assert all(doc.get("machine") for doc in written)
 
 
 TINY_STEPS = ["--preset", "tiny", "--from", "2", "--steps", "3"]
@@ -75,7 +136,7 @@ def test_paper_table_scores_both_stages_on_every_held_out_view(nerf_scene, monke
     args += ["--material-iterations", "5", "--seeds", "0", "1"]
     doc = paper_table.main(args)
     figures = doc["figures"]
-    assert figures["views"]["values"] == [2, 2]  # every view of transforms_train.json
+    assert figures["views"]["values"] == [10, 10]  # every view of transforms_train.json
     for key in ("render_psnr", "render_psnr_gain", "render_ssim", "radiance_psnr_gain"):
         assert 0 < figures[key]["mean"] < 60 and figures[key]["std"] is not None, key
     for key in ("normal_mae_deg", "radiance_normal_mae_deg", "depth_rel_err", "object_psnr"):
@@ -90,3 +151,5 @@ def test_paper_table_scores_both_stages_on_every_held_out_view(nerf_scene, monke
     assert "seeds 0 1" in table
     again = paper_table.main(args[:-1])  # seed 0 is read back, not run again
     assert again["runs"][0] == doc["runs"][0]
+    rescored = paper_table.main([*args[:-1], "--rescore"])["runs"][0]
+    assert rescored["figures"] == doc["runs"][0]["figures"]  # the same fields, the same truth
