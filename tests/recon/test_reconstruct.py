@@ -17,6 +17,7 @@ from evcap.recon import config as cfg
 from evcap.recon.export import read_ply_header
 from evcap.recon.radiance import RadianceField, load_training_data, new_field, train_radiance
 from evcap.recon.reconstruct import reconstruct
+from evcap.records import GroundTruth
 from evcap.session import Session, SessionWriter
 from evcap.sim.scene import load_scene
 from evcap.sim.simulate import simulate
@@ -255,6 +256,27 @@ def test_checkpoint_holds_the_field(color_result):
     out, result = color_result
     state = torch.load(out / "checkpoint" / "radiance.pt", weights_only=False)
     assert state["gaussians"]["means"].shape == (result.gaussians, 3)
+
+
+def test_stage_two_checkpoint_reads_back_the_field_that_was_scored(color_session, color_result):
+    """The material field read from its checkpoint renders the held-out views as the trained
+    one did: its shaded render scores what metrics.json says, to the bit."""
+    from evcap.recon.evaluate import material_metrics, render_views
+    from evcap.recon.export import load_material_checkpoint
+    from evcap.recon.optics import SensorOptics
+
+    out, result = color_result
+    field = load_material_checkpoint(out / "checkpoint" / "material.pt")
+    assert field.effects.items() <= result.effects.items()
+    with Session.open(color_session) as s:
+        truth = GroundTruth.read(s).held_out_views()
+        optics = SensorOptics.from_session(s)
+    views = render_views(field, truth.T_world_cam, optics)
+    figures = material_metrics(views, truth)
+    assert figures["pbr_render_psnr"] == result.figures.pbr_render_psnr
+    assert figures["base_color_psnr"] == result.figures.base_color_psnr
+    with pytest.raises(InputError, match="no stage-II checkpoint"):
+        load_material_checkpoint(out / "checkpoint" / "absent.pt")
 
 
 def test_refuses_to_overwrite(color_session, color_result):
