@@ -12,8 +12,8 @@ directions, never seen by the events) and scored:
   (the paper's "rendered image"): PSNR (the mean over the views of each view's), SSIM, LPIPS;
 - normal MAE: stage II's shading normals against the normals derived from the release's depth,
   where the truth has a surface; depth error: a share of the distance there;
-- beside them stage I's radiance, whole image and on the object's pixels, with what the best
-  constant color scores there;
+- beside them stage I's radiance (whole image), and both stages on the object's pixels alone
+  with what the best constant color scores there;
 - base color: the release has no albedo, so it cannot be scored.
 Raw figures first; then after one gain per color channel (no offset: the events leave only
 that undetermined), fitted once over all held-out views together. An affine fit per view is
@@ -142,14 +142,16 @@ def image_figures(
     return out
 
 
-def object_figures(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict[str, float]:
-    """Stage I's radiance on the object's pixels of all views together, raw and after the
-    gain fitted there, beside the best constant color there."""
+def object_figures(
+    pred: np.ndarray, truth: np.ndarray, mask: np.ndarray, prefix: str
+) -> dict[str, float]:
+    """A render on the object's pixels of all views together, raw and after the gain fitted
+    there, beside the best constant color there."""
     seen = srgb(truth)[mask]
     gain = fit_gain(pred[mask], truth[mask])
     return {
-        "object_psnr": psnr(srgb(pred)[mask], seen),
-        "object_psnr_gain": psnr(srgb(pred[mask] * gain), seen),
+        f"{prefix}_psnr": psnr(srgb(pred)[mask], seen),
+        f"{prefix}_psnr_gain": psnr(srgb(pred[mask] * gain), seen),
         "object_psnr_constant": psnr(np.broadcast_to(seen.mean(0), seen.shape), seen),
     }
 
@@ -168,13 +170,14 @@ def score(
     radiance, _ = load_checkpoint(out / "checkpoint" / "radiance.pt", device, backend)
     stage_1 = render_views(radiance, truth.T_world_cam, optics, device)
     figures.update(image_figures(stage_1["radiance"], truth.radiance, "radiance", lpips))
-    figures.update(object_figures(stage_1["radiance"], truth.radiance, mask))
+    figures.update(object_figures(stage_1["radiance"], truth.radiance, mask, "object"))
     figures["radiance_normal_mae_deg"] = normal_mae_deg(stage_1["normal"], truth.normal)
     figures["depth_rel_err"] = depth_rel_err(stage_1["depth"], truth.depth)
     del stage_1, radiance
     material = load_material_checkpoint(out / "checkpoint" / "material.pt", device, backend)
     stage_2 = render_views(material, truth.T_world_cam, optics, device)
     figures.update(image_figures(stage_2["radiance"], truth.radiance, "render", lpips))
+    figures.update(object_figures(stage_2["radiance"], truth.radiance, mask, "render_object"))
     figures["normal_mae_deg"] = normal_mae_deg(stage_2["normal"], truth.normal)
     figures["base_color_psnr"] = NO_ALBEDO if truth.base_color is None else math.nan
     return figures
@@ -324,10 +327,16 @@ def table(name: str, label: str, figures: dict[str, dict]) -> str:
     lines = [
         "| " + " | ".join(h for h, _ in COLUMNS) + " |",
         "|" + "---|" * len(COLUMNS),
-        row(f"evcap, {name}, {label}: raw", {**same, "object_psnr": ""}),
+        row(f"evcap, {name}, {label}: raw", {**same, "object_psnr": "render_object_psnr"}),
         row(
             "  after one gain per channel (all views)",
-            {**gain, "normal_mae_deg": "normal_mae_deg", "depth_rel_err": "depth_rel_err"},
+            {
+                **gain,
+                "normal_mae_deg": "normal_mae_deg",
+                "depth_rel_err": "depth_rel_err",
+                "object_psnr": "render_object_psnr_gain",
+                "object_psnr_constant": "object_psnr_constant",
+            },
         ),
         row("  stage I radiance, raw", {**stage_1, "depth_rel_err": "depth_rel_err"}),
         row("  stage I radiance, gain", stage_1_gain),

@@ -141,6 +141,8 @@ def test_paper_table_scores_both_stages_on_every_held_out_view(nerf_scene, monke
         assert 0 < figures[key]["mean"] < 60 and figures[key]["std"] is not None, key
     for key in ("normal_mae_deg", "radiance_normal_mae_deg", "depth_rel_err", "object_psnr"):
         assert np.isfinite(figures[key]["mean"]), key
+    for key in ("render_object_psnr", "render_object_psnr_gain", "object_psnr_constant"):
+        assert np.isfinite(figures[key]["mean"]), key
     assert figures["render_lpips"]["mean"] == paper_table.NO_LPIPS
     assert figures["base_color_psnr"]["mean"] == paper_table.NO_ALBEDO
     # the gain is fitted once over all views: it can only bring the pixels closer in linear

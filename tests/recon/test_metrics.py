@@ -4,6 +4,7 @@ and the blurred truth over the whole image."""
 import numpy as np
 import pytest
 
+from evcap.images import fit_color_correction, fit_gain
 from evcap.recon.metrics import blur_psnr, depth_rel_err, object_metrics, psnr, srgb
 from evcap.records import TruthViews
 
@@ -49,6 +50,19 @@ def test_the_color_correction_forgives_a_gain_and_offset(scene):
     radiance, depth = scene
     m = object_metrics(0.5 * radiance + 0.1, radiance, depth > 0)
     assert m["object_psnr_cc"] > 50
+
+
+def test_the_gain_alone_forgives_a_gain_per_channel_but_not_haze(scene):
+    """What events leave undetermined is a gain per channel: fit_gain undoes that exactly; an
+    offset (haze) stays in the figure, where the affine correction would forgive it."""
+    radiance, _ = scene
+    gains = np.array([0.5, 1.5, 0.8])
+    np.testing.assert_allclose(fit_gain(radiance * gains, radiance), 1 / gains, rtol=1e-6)
+    hazy = radiance * gains + 0.1
+    corrected = hazy * fit_gain(hazy, radiance)
+    assert psnr(srgb(corrected), srgb(radiance)) < 30
+    cc = fit_color_correction(hazy, radiance)
+    assert psnr(srgb(hazy * cc[:, 0] + cc[:, 1]), srgb(radiance)) > 50
 
 
 def test_the_blurred_truth_is_below_the_truth_and_above_a_constant(scene):
