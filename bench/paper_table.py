@@ -21,7 +21,8 @@ given as a diagnostic only (`_affine_per_view`): it also forgives haze.
 
 Before the reconstruction the truth itself is checked: the decoded depth of path views 10
 apart must agree where they see the same point, and so must the normals derived from it.
-Each seed's figures go to results/paper_table/<scene>-<preset>-x<scale>-seed<N>.json and are
+Each seed's figures go to results/paper_table/<scene>-<preset>-x<scale>-seed<N>.json (four of
+its views beside their truth to .png: SHEET_COLUMNS) and are
 read back, not rerun, by a later call with the same settings (--rerun to redo them, --rescore
 to score their fields in results/fields/ again); the table, mean and spread over the seeds, to
 results/paper_table-<scene>.{json,md}.
@@ -31,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import time
 from pathlib import Path
 
@@ -157,9 +157,15 @@ def object_figures(
 
 
 def score(
-    out: Path, session: Path, device: str, backend: str, lpips: Lpips | None
+    out: Path,
+    session: Path,
+    device: str,
+    backend: str,
+    lpips: Lpips | None,
+    picture: Path | None = None,
 ) -> dict[str, float | str]:
-    """Both stages' checkpoints in OUT rendered at every held-out view and scored."""
+    """Both stages' checkpoints in OUT rendered at every held-out view and scored; four of the
+    views beside their truth written to ``picture`` (PNG)."""
     if (out / "poses.h5").exists():
         raise SystemExit(f"{out}: stage I refined the poses; the table scores views at the truth's")
     with Session.open(session) as s:
@@ -173,14 +179,38 @@ def score(
     figures.update(object_figures(stage_1["radiance"], truth.radiance, mask, "object"))
     figures["radiance_normal_mae_deg"] = normal_mae_deg(stage_1["normal"], truth.normal)
     figures["depth_rel_err"] = depth_rel_err(stage_1["depth"], truth.depth)
+    shown = np.unique(np.linspace(0, len(truth) - 1, min(4, len(truth))).round().astype(int))
+    stage_1_shown = stage_1["radiance"][shown] * figures["radiance_gain_rgb"]
     del stage_1, radiance
     material = load_material_checkpoint(out / "checkpoint" / "material.pt", device, backend)
     stage_2 = render_views(material, truth.T_world_cam, optics, device)
     figures.update(image_figures(stage_2["radiance"], truth.radiance, "render", lpips))
     figures.update(object_figures(stage_2["radiance"], truth.radiance, mask, "render_object"))
     figures["normal_mae_deg"] = normal_mae_deg(stage_2["normal"], truth.normal)
-    figures["base_color_psnr"] = NO_ALBEDO if truth.base_color is None else math.nan
+    figures["base_color_psnr"] = NO_ALBEDO
+    if picture is not None:
+        columns = [
+            srgb(truth.radiance[shown]),
+            srgb(stage_1_shown),
+            srgb(stage_2["radiance"][shown] * figures["render_gain_rgb"]),
+            stage_2["normal"][shown] * 0.5 + 0.5,
+            truth.normal[shown] * 0.5 + 0.5,
+        ]
+        write_sheet(columns, picture)
     return figures
+
+
+SHEET_COLUMNS = "truth | stage I radiance | stage II render | stage II normals | true normals"
+
+
+def write_sheet(columns: list[np.ndarray], path: Path) -> None:
+    """Images [V, H, W, 3] in [0, 1], one list entry a column, one view a row, as a PNG."""
+    import cv2
+
+    rows = [np.concatenate([c[v] for c in columns], 1) for v in range(len(columns[0]))]
+    sheet = np.clip(np.concatenate(rows, 0), 0, 1)[..., ::-1]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), (sheet * 255 + 0.5).astype(np.uint8))
 
 
 def simulated(scene: Path, scale: float) -> Path:
@@ -231,7 +261,9 @@ def run_seed(session: Path, args: argparse.Namespace, seed: int, lpips: Lpips | 
         if done["settings"] == settings and args.rescore:
             print(f"seed {seed}: its fields in {out} scored again", flush=True)
             started = time.perf_counter()
-            done["figures"] = score(out, session, args.device, done["backend"], lpips)
+            done["figures"] = score(
+                out, session, args.device, done["backend"], lpips, path.with_suffix(".png")
+            )
             done["scoring_seconds"] = time.perf_counter() - started
             path.write_text(json.dumps(done, indent=2))
             return done
@@ -253,7 +285,7 @@ def run_seed(session: Path, args: argparse.Namespace, seed: int, lpips: Lpips | 
         progress=progress,
     )
     started = time.perf_counter()
-    figures = score(out, session, args.device, result.backend, lpips)
+    figures = score(out, session, args.device, result.backend, lpips, path.with_suffix(".png"))
     run = {
         "seed": seed,
         "settings": settings,
@@ -400,8 +432,8 @@ def main(argv: list[str] | None = None) -> dict:
     minutes = [(r["stage_1_seconds"] + r["stage_2_seconds"]) / 60 for r in runs]
     label = (
         f"{args.preset}, {w} x {h}, {first['iterations']:,} + {first['material_iterations']:,} "
-        f"steps, seeds {' '.join(map(str, args.seeds))}, {np.mean(minutes):.0f} min a run on "
-        f"{describe_device(args.device)}"
+        f"steps, seeds {' '.join(map(str, args.seeds))}, "
+        f"{' / '.join(f'{m:.0f}' for m in minutes)} min a run on {describe_device(args.device)}"
     )
     figures = summary(runs)
     text = table(name, label, figures)

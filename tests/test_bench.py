@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -151,6 +152,8 @@ def test_paper_table_scores_both_stages_on_every_held_out_view(nerf_scene, monke
     table = (tmp_path / "paper_table-sphere.md").read_text()
     assert "evcap, sphere, tiny" in table and "method, 7-scene mean" in table
     assert "seeds 0 1" in table
+    sheet = cv2.imread(str(tmp_path / "paper_table" / "sphere-tiny-x1-seed0.png"))
+    assert sheet.shape == (4 * 36, 5 * 48, 3)  # four views, each beside its truth
     again = paper_table.main(args[:-1])  # seed 0 is read back, not run again
     assert again["runs"][0] == doc["runs"][0]
     rescored = paper_table.main([*args[:-1], "--rescore"])["runs"][0]
