@@ -12,6 +12,7 @@ takes a fixed random weighting of every output (color, depth, alpha, normals). T
 turns, round after round, and each figure is the fastest of its rounds.
 
     .venv/bin/python bench/rasterizer.py [--quick] [--repeats N] [--scene S] [--preset P]
+        [--iterations N] [--scale X]
 """
 
 from __future__ import annotations
@@ -138,6 +139,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--scene", default="single_object", help="the trained field's scene")
     parser.add_argument("--preset", default="fast", help="the trained field's preset")
     parser.add_argument("--iterations", type=int, help="the trained field's steps (preset's)")
+    parser.add_argument("--scale", type=float, default=1.0, help="every row's image size times")
     args = parser.parse_args(argv)
     fields = {
         "trained": functools.partial(
@@ -145,7 +147,11 @@ def main(argv: list[str] | None = None) -> None:
         ),
         "synthetic": synthetic,
     }
-    configs = [c for c in CONFIGS if not args.quick or c[1] == 173]
+    configs = [
+        (field, round(width * args.scale), round(height * args.scale), n, channels)
+        for field, width, height, n, channels in CONFIGS
+        if not args.quick or width == 173
+    ]
     threads_before = torch.get_num_threads()
     gsplat = False
     if torch.cuda.is_available():

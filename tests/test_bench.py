@@ -46,7 +46,7 @@ TINY = {
     "import_throughput": ["--events", "20000", "--warm-events", "2000", "--rounds", "1"],
     "poses": ["--scenes", "{board}"],
     "rasterizer": ["--quick", "--repeats", "1", "--scene", "{session}", "--preset", "tiny"]
-    + ["--iterations", "5"],
+    + ["--iterations", "5", "--scale", "0.25"],
     "recon_pareto": ["--scenes", "{session}", "--presets", "tiny", "--iterations", "5"]
     + ["--resolutions", "0.5", "--seeds", "1"],
     "record_throughput": ["--seconds", "0.05"],
