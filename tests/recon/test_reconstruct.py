@@ -353,17 +353,17 @@ def test_cli_writes_a_reconstruction(color_session, tmp_path):
 
 
 def test_the_papers_run_completes_both_stages(color_session, tmp_path):
-    """`--preset paper` as a user runs it, its 30,000 + 10,000 steps cut to 50 + 20: 100,000
+    """`--preset paper` as a user runs it, its 30,000 + 10,000 steps cut to 20 + 10: 100,000
     Gaussians, degree-3 harmonics, the full scale, both stages, on the CPU."""
     out = tmp_path / "paper"
     args = ["reconstruct", str(color_session), "-o", str(out), "--preset", "paper"]
-    args += ["--iterations", "50", "--material-iterations", "20"]
+    args += ["--iterations", "20", "--material-iterations", "10"]
     r = subprocess.run([sys.executable, "-m", "evcap", *args], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["preset"] == "paper" and metrics["iterations"] == 50
-    assert metrics["material_iterations"] == 20 and not metrics["interrupted"]
-    assert metrics["gaussians"] > 50_000  # the paper's start, not pruned away in 50 steps
+    assert metrics["preset"] == "paper" and metrics["iterations"] == 20
+    assert metrics["material_iterations"] == 10 and not metrics["interrupted"]
+    assert metrics["gaussians"] > 50_000  # the paper's start, not pruned away in 20 steps
     config = tomllib.loads((out / "config.toml").read_text())
     assert config["radiance"]["sh_degree"] == 3 and config["material"]["edge_frames"] == 200
     assert np.isfinite(metrics["base_color_psnr_cc"])
