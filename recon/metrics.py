@@ -16,6 +16,7 @@ render below it has not resolved anything finer than that blur.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -110,26 +111,28 @@ def normal_mae_deg(pred: np.ndarray, gt: np.ndarray) -> float:
     return float(np.degrees(np.arccos(cos)).mean())
 
 
+def local_lpips_weights() -> tuple[Path, Path] | None:
+    """The LPIPS weights already on this machine, if any: torchvision's AlexNet in torch's hub
+    cache and the linear heads the lpips package ships (never downloaded)."""
+    import importlib.util
+
+    from torch.hub import get_dir
+
+    backbone = Path(get_dir()) / "checkpoints" / "alexnet-owt-7be5be79.pth"
+    spec = importlib.util.find_spec("lpips")
+    if spec is None or spec.origin is None or not backbone.exists():
+        return None
+    heads = Path(spec.origin).parent / "weights" / "v0.1" / "alex.pth"
+    return (backbone, heads) if heads.exists() else None
+
+
 def lpips_if_available(pred: np.ndarray, gt: np.ndarray) -> float | None:
-    """LPIPS (AlexNet) when the lpips package and all its weights are already on this machine;
-    None otherwise (weights are never downloaded)."""
-    try:
-        import lpips  # noqa: F401
-        from torch.hub import get_dir
-    except Exception:  # noqa: BLE001  missing, or broken by a torchvision that cannot load
-        return None
-    import os
+    """LPIPS (AlexNet) of sRGB images [N, H, W, 3] when its weights are on this machine
+    (local_lpips_weights); None otherwise."""
+    from evcap.recon.lpips import Lpips
 
-    backbone = os.path.join(get_dir(), "checkpoints", "alexnet-owt-7be5be79.pth")
-    if not os.path.exists(backbone):
-        return None
-    import lpips as lp
-
-    model = lp.LPIPS(net="alex", verbose=False)
-    ta = torch.as_tensor(np.asarray(pred, np.float32)).permute(0, 3, 1, 2) * 2 - 1
-    tb = torch.as_tensor(np.asarray(gt, np.float32)).permute(0, 3, 1, 2) * 2 - 1
-    with torch.no_grad():
-        return float(model(ta, tb).mean())
+    weights = local_lpips_weights()
+    return None if weights is None else Lpips(*weights)(pred, gt)
 
 
 def surface_metrics(

@@ -71,3 +71,26 @@ def test_missing_or_wrong_weights_are_named(tmp_path):
     (tmp_path / "junk.pth").write_bytes(b"not a torch file")
     with pytest.raises(InputError, match="not a torch state dict"):
         Lpips(tmp_path / "junk.pth", heads)
+
+
+def test_the_reconstructions_lpips_uses_the_weights_already_on_the_machine(tmp_path, monkeypatch):
+    """evaluate's LPIPS: torchvision's AlexNet in torch's hub cache and the heads the lpips
+    package ships, computed here; None when either is missing."""
+    import sys
+
+    from evcap.recon import metrics
+
+    hub, package = tmp_path / "hub", tmp_path / "site" / "lpips"
+    (hub / "checkpoints").mkdir(parents=True)
+    (package / "weights" / "v0.1").mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    alexnet, heads = write_weights(tmp_path, centre_tap)
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(hub))
+    monkeypatch.syspath_prepend(str(tmp_path / "site"))
+    monkeypatch.delitem(sys.modules, "lpips", raising=False)
+    white, black = np.ones((1, 64, 64, 3)), np.zeros((1, 64, 64, 3))
+    assert metrics.lpips_if_available(white, black) is None  # no backbone in the cache
+    alexnet.rename(hub / "checkpoints" / alexnet.name)
+    assert metrics.lpips_if_available(white, black) is None  # no heads in the package
+    heads.rename(package / "weights" / "v0.1" / "alex.pth")
+    assert metrics.lpips_if_available(white, black) == pytest.approx(sum(HEADS), rel=1e-6)
