@@ -16,6 +16,22 @@ from evcap.errors import InputError
 
 RESULT_FILE = "metrics.json"
 STAGE_I, STAGE_II, RUN = "stage I (radiance)", "stage II (material)", "run"
+# the figures a user is shown after a run (`evcap reconstruct`, the demo, `evcap batch`'s
+# summary), in this order; metrics.json and the report hold them all
+SHOWN = (
+    "object_psnr_cc",
+    "object_psnr_constant",
+    "normal_mae_deg",
+    "depth_rel_err",
+    "render_psnr_cc",
+    "blur_psnr",
+    "base_color_psnr_cc",
+    "base_color_psnr_cc_baseline",
+    "roughness_mae",
+    "pbr_render_psnr_cc",
+    "relit_object_psnr_cc",
+    "relit_object_psnr_cc_baseline",
+)
 
 
 def _figure(name: str, unit: str, stage: str):
@@ -105,6 +121,11 @@ class Figures:
     def measured(self) -> dict[str, float]:
         """The figures that were measured, by name, in the order above."""
         return {k: v for k, v in dataclasses.asdict(self).items() if v is not None}
+
+    def shown(self) -> dict[str, float]:
+        """The measured figures of SHOWN, in its order."""
+        measured = self.measured()
+        return {k: measured[k] for k in SHOWN if k in measured}
 
 
 @dataclass
