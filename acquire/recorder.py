@@ -22,6 +22,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Literal, get_args
 
 from evcap.acquire import protocol as P
 from evcap.acquire.decoder import Decoded, StreamDecoder
@@ -39,6 +40,15 @@ from evcap.session import SensorInfo, SessionWriter
 from evcap.streams import Frames, ImuSamples, Triggers
 
 STATS_INTERVAL_S = 1.0  # how often the device's counters and the free disk space are read
+
+# How a recording ended: written into the session file (its end_reason attribute) and shown to
+# users, so the values are kept as they are.
+EndReason = Literal[
+    "stopped", "duration", "end of replay", "camera lost", "disk full", "write failed"
+]
+END_REASONS: tuple[EndReason, ...] = get_args(EndReason)
+# the ends the monitor reports as information; the others it shows as errors
+NORMAL_ENDS: tuple[EndReason, ...] = ("stopped", "end of replay")
 
 
 @dataclass
@@ -59,8 +69,7 @@ class RecordResult:
     """What one recording (one session file) holds, and how it ended."""
 
     path: Path
-    # "stopped", "duration", "end of replay", "camera lost", "disk full", "write failed"
-    end_reason: str = "stopped"
+    end_reason: EndReason = "stopped"
     events: int = 0
     frames: int = 0
     imu: int = 0
@@ -180,7 +189,7 @@ class Recorder:
         self.result: RecordResult | None = None  # of the last recording
         self.device_dropped: dict[str, int] = {}
         self.decoder: StreamDecoder | None = None
-        self.end_reason = "stopped"
+        self.end_reason: EndReason = "stopped"
 
     # -- requests from other threads -----------------------------------------------------------
 
@@ -240,7 +249,7 @@ class Recorder:
         self._recording = _Recording(writer, t0)
         self.on_event(RecordingStarted(path))
 
-    def _close(self, end_reason: str, error: str | None = None) -> RecordResult:
+    def _close(self, end_reason: EndReason, error: str | None = None) -> RecordResult:
         """Close the open recording normally (its final attributes, complete = True)."""
         rec, self._recording = self._recording, None
         r = rec.result

@@ -16,8 +16,9 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from evcap.app.pipeline import STEPS, StepResult, one_line
 from evcap.batch.manifest import Manifest
-from evcap.batch.steps import STEPS, Job, StepResult, calibrate_group, one_line, run_step
+from evcap.batch.steps import Job, calibrate_group, run_step
 from evcap.batch.summary import RecordingRow, write_summary
 from evcap.errors import InputError
 

@@ -10,16 +10,10 @@ import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from evcap.batch.steps import FIGURES, STEPS, StepResult, write_whole
-
-FIGURE_LABELS = {
-    "object_psnr_cc": "object PSNR (dB)",
-    "object_psnr_constant": "constant color (dB)",
-    "normal_mae_deg": "normals (deg)",
-    "depth_rel_err": "depth error",
-    "base_color_psnr_cc": "base color (dB)",
-    "relit_object_psnr_cc": "relit object (dB)",
-}
+from evcap.app.pipeline import STEPS, Status, StepResult, Workspace
+from evcap.atomic_write import write_text_atomic
+from evcap.records import Figures
+from evcap.records.result import SHOWN
 
 
 @dataclass
@@ -29,7 +23,7 @@ class RecordingRow:
     steps: dict[str, StepResult] = field(default_factory=dict)
 
     @property
-    def status(self) -> str:
+    def status(self) -> Status:
         states = [r.status for r in self.steps.values()]
         for worst in ("failed", "stopped", "not run"):
             if worst in states:
@@ -68,10 +62,10 @@ def write_summary(out: Path, rows: list[RecordingRow], about: dict) -> None:
     """summary.json (everything), summary.csv (a row per recording) and index.html."""
     out.mkdir(parents=True, exist_ok=True)
     document = {**about, "recordings": [r.to_json() for r in rows]}
-    write_whole(out / "summary.json", json.dumps(document, indent=2))
+    write_text_atomic(out / "summary.json", json.dumps(document, indent=2))
     columns = ["name", "status", "error", "seconds"]
     columns += [f"{s}_{k}" for s in STEPS for k in ("status", "seconds")]
-    columns += list(FIGURES)
+    columns += list(SHOWN)
     lines = []
     for r in rows:
         line = {
@@ -87,24 +81,25 @@ def write_summary(out: Path, rows: list[RecordingRow], about: dict) -> None:
     writer = csv.DictWriter(table, columns)
     writer.writeheader()
     writer.writerows(lines)
-    write_whole(out / "summary.csv", table.getvalue())
-    write_whole(out / "index.html", _page(out, rows, about))
+    write_text_atomic(out / "summary.csv", table.getvalue())
+    write_text_atomic(out / "index.html", _page(out, rows, about))
 
 
 def _page(out: Path, rows: list[RecordingRow], about: dict) -> str:
     e = html.escape
-    head = ["recording", "status", *STEPS, *(FIGURE_LABELS[k] for k in FIGURES), "error"]
+    head = ["recording", "status", *STEPS, *(_label(k) for k in SHOWN), "error"]
     body = []
     for r in rows:
         name = e(r.name)
-        if (out / r.name / "report.html").exists():
-            name = f'<a href="{e(r.name)}/report.html">{name}</a>'
+        report = Workspace(out / r.name).report
+        if report.exists():
+            name = f'<a href="{e(report.relative_to(out).as_posix())}">{name}</a>'
         cells = [name, f'<span class="{e(r.status)}">{e(r.status)}</span>']
         for s in STEPS:
             step = r.steps.get(s)
             cells.append("" if step is None else f"{e(step.status)}<br>{step.seconds:.1f} s")
         figures = r.figures
-        cells += [_number(figures.get(k), k) for k in FIGURES]
+        cells += [_number(figures.get(k), k) for k in SHOWN]
         cells.append(e(r.error))
         body.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
     counts = {s: sum(r.status == s for r in rows) for s in ("done", "failed", "stopped", "not run")}
@@ -134,6 +129,11 @@ td:first-child, td:last-child {{ text-align: left; }}
 {"".join(body)}
 </table></body></html>
 """
+
+
+def _label(key: str) -> str:
+    name, unit, _ = Figures.describe(key)
+    return f"{name} ({unit})" if unit else name
 
 
 def _number(value: object, key: str) -> str:

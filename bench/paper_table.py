@@ -46,7 +46,7 @@ from evcap.recon.lpips import Lpips
 from evcap.recon.metrics import depth_rel_err, normal_mae_deg, psnr, ssim_map
 from evcap.recon.optics import SensorOptics
 from evcap.recon.reconstruct import pick_device, reconstruct
-from evcap.records import GroundTruth, TruthViews
+from evcap.records import GroundTruth, ReconstructionFolder, TruthViews
 from evcap.session import Session
 from evcap.sim.from_images import rays, simulate_from_images
 
@@ -166,14 +166,15 @@ def score(
 ) -> dict[str, float | str]:
     """Both stages' checkpoints in OUT rendered at every held-out view and scored; four of the
     views beside their truth written to ``picture`` (PNG)."""
-    if (out / "poses.h5").exists():
+    folder = ReconstructionFolder(out)
+    if folder.poses.exists():
         raise SystemExit(f"{out}: stage I refined the poses; the table scores views at the truth's")
     with Session.open(session) as s:
         truth: TruthViews = GroundTruth.read(s).held_out_views()
         optics = SensorOptics.from_session(s)
     mask = truth.object_mask()
     figures: dict[str, float | str] = {"views": len(truth)}
-    radiance, _ = load_checkpoint(out / "checkpoint" / "radiance.pt", device, backend)
+    radiance, _ = load_checkpoint(folder.checkpoint("radiance"), device, backend)
     stage_1 = render_views(radiance, truth.T_world_cam, optics, device)
     figures.update(image_figures(stage_1["radiance"], truth.radiance, "radiance", lpips))
     figures.update(object_figures(stage_1["radiance"], truth.radiance, mask, "object"))
@@ -182,7 +183,7 @@ def score(
     shown = np.unique(np.linspace(0, len(truth) - 1, min(4, len(truth))).round().astype(int))
     stage_1_shown = stage_1["radiance"][shown] * figures["radiance_gain_rgb"]
     del stage_1, radiance
-    material = load_material_checkpoint(out / "checkpoint" / "material.pt", device, backend)
+    material = load_material_checkpoint(folder.checkpoint("material"), device, backend)
     stage_2 = render_views(material, truth.T_world_cam, optics, device)
     figures.update(image_figures(stage_2["radiance"], truth.radiance, "render", lpips))
     figures.update(object_figures(stage_2["radiance"], truth.radiance, mask, "render_object"))

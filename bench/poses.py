@@ -23,7 +23,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import RESULTS, report, scene_label, session_of  # noqa: E402
 
-FIXTURES = Path(__file__).resolve().parents[1] / "evcap" / "demo_data"
+FIXTURES = Path(__file__).resolve().parents[1] / "app" / "demo_data"
 RECONSTRUCTED = ("single_object", "demo")  # scenes whose held-out views are scored
 
 
@@ -31,18 +31,15 @@ def demo_session(work: Path) -> Path:
     """The demo's capture as `evcap demo` makes it (both bundled recordings replayed through
     the driver, the calibration recording calibrating the scene's), with the simulator's truth
     and, as /poses, its true path."""
-    from evcap._progress import progress_bar
-    from evcap.demo import SCENE, DemoContext, demo_steps
+    from evcap.app.demo import SCENE, demo_pipeline
     from evcap.sim.truth import copy_truth
 
     out = work / "demo"
     out.mkdir(parents=True)
-    quiet = lambda what: progress_bar(what, enabled=False)  # noqa: E731
-    ctx = DemoContext(out, FIXTURES, "tiny", quiet, say=lambda line: None)
-    for step in demo_steps(ctx)[:3]:
-        step.run()
-    copy_truth(FIXTURES / SCENE / "truth.h5", ctx.scene, poses=True)
-    return ctx.scene
+    pipeline = demo_pipeline(out, fixtures=FIXTURES, say=lambda line: None)
+    pipeline.run(pipeline.names()[:3])  # the two recordings, the calibration
+    copy_truth(FIXTURES / SCENE / "truth.h5", pipeline.workspace.session, poses=True)
+    return pipeline.workspace.session
 
 
 def poses_against_truth(path: Path, work: Path, kind: str, gyro: bool) -> tuple[dict, Path]:
@@ -104,9 +101,8 @@ def reconstruction_difference(
     seed: the held-out views' object figures, the whole image's, and the refined poses'
     errors against the truth (the first seed's keys unsuffixed, the others' with _seedN;
     the object figure's mean over the seeds as _mean)."""
-    from evcap.demo import STAGE_I
-    from evcap.recon.reconstruct import POSES_FILE, reconstruct
-    from evcap.records import GroundTruth, Poses
+    from evcap.recon.reconstruct import reconstruct
+    from evcap.records import GroundTruth, Poses, ReconstructionFolder
     from evcap.session import Session
     from evcap.trajectory_alignment import pose_errors
 
@@ -123,9 +119,8 @@ def reconstruction_difference(
             f = reconstruct(
                 session,
                 work / f"recon_{name}{tag}",
-                preset="tiny",
+                preset="small",
                 stage="radiance",
-                radiance_settings=STAGE_I["tiny"],
                 refine_poses=refine,
                 seed=seed,
             ).figures
@@ -142,7 +137,7 @@ def reconstruction_difference(
                 out[f"recon_true_poses_object_psnr_cc{tag}"]
                 - out[f"recon_{name}_poses_object_psnr_cc{tag}"]
             )
-        refined = Poses.read_file(work / f"recon_refined{tag}" / POSES_FILE)
+        refined = Poses.read_file(ReconstructionFolder(work / f"recon_refined{tag}").poses)
         for name, poses in (("estimated", given), ("refined", refined)):
             if name == "estimated" and tag:
                 continue  # the same poses for every seed

@@ -31,7 +31,7 @@ from _common import RESULTS, report, scene_label, session_of
 from evcap.recon.export import load_checkpoint
 from evcap.recon.optics import SensorOptics
 from evcap.recon.rasterize import Camera, rasterize
-from evcap.records import GroundTruth
+from evcap.records import GroundTruth, ReconstructionFolder
 from evcap.session import Session
 
 # (field, width, height, Gaussians, channels): the fast preset's size, the sensor's, the method's
@@ -61,7 +61,7 @@ def trained(
     session = session_of(scene)
     steps = "" if iterations is None else f"_{iterations}"
     out = RESULTS / "fields" / f"{scene_label(scene)}_{preset}{steps}"
-    checkpoint = out / "checkpoint" / "radiance.pt"
+    checkpoint = ReconstructionFolder(out).checkpoint("radiance")
     if not checkpoint.exists():
         print(f"fitting stage I of {scene} at {preset} (once) ...", flush=True)
         reconstruct(

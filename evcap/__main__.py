@@ -1,5 +1,5 @@
 import sys
 
-from evcap.cli import main
+from evcap.app.cli import main
 
 sys.exit(main())

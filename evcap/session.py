@@ -36,6 +36,7 @@ from evcap.errors import (
     SessionWriteError,
 )
 from evcap.events import COLOR_FILTERS, Events, check_color_filter, first_unsorted
+from evcap.hdf5_attributes import from_hdf5, read_attributes, to_hdf5
 from evcap.streams import APS_MAX, Frames, ImuSamples, TriggerKind, Triggers
 
 SCHEMA_VERSION = 1
@@ -104,13 +105,6 @@ def _now_iso() -> str:
     return datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
 
 
-def _attr_value(value: object) -> object:
-    """A root attribute as HDF5 stores it: numbers, strings, or arrays of them."""
-    if isinstance(value, str | int | float | bool | np.integer | np.floating):
-        return value
-    return np.asarray(value)
-
-
 class SessionWriter:
     """Create a session file and append streams to it in time order.
 
@@ -165,7 +159,7 @@ class SessionWriter:
             "complete": False,
         }
         for key, value in {**root, **(attrs or {})}.items():
-            f.attrs[key] = _attr_value(value)
+            f.attrs[key] = to_hdf5(value)
         h, w = sensor.height, sensor.width
         self._ds: dict[str, h5py.Dataset] = {}
 
@@ -423,7 +417,7 @@ class SessionWriter:
             # New attributes cannot be added in SWMR mode: reopen without it.
             with h5py.File(self.path, "r+") as f:
                 for key, value in (attrs or {}).items():
-                    f.attrs[key] = _attr_value(value)
+                    f.attrs[key] = to_hdf5(value)
                 f.attrs["complete"] = True
         except OSError as e:
             raise self._write_error(e) from e
@@ -509,7 +503,7 @@ def write_group(
                 options["chunks"] = (1, *a.shape[1:]) if a.ndim >= 3 else True
             group.create_dataset(key, data=a, **options)
         for key, value in (attrs or {}).items():
-            group.attrs[key] = _attr_value(value)
+            group.attrs[key] = to_hdf5(value)
 
 
 # -- reading ---------------------------------------------------------------------------------
@@ -626,8 +620,7 @@ class Session:
     def __init__(self, path: Path, f: h5py.File) -> None:
         self.path = path
         self._f = f
-        a = f.attrs
-        self.attrs: dict = {k: _py(v) for k, v in a.items()}
+        self.attrs: dict = read_attributes(f)
         try:
             self.sensor = SensorInfo(
                 sensor=str(self.attrs["sensor"]),
@@ -858,14 +851,6 @@ class Session:
         self.close()
 
 
-def _py(value: object) -> object:
-    if isinstance(value, bytes):
-        return value.decode()
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
-
-
 def _check_structure(path: Path, f: h5py.File) -> None:
     version = f.attrs.get("schema_version")
     if version is None:
@@ -878,7 +863,7 @@ def _check_structure(path: Path, f: h5py.File) -> None:
     missing = [k for k in _ROOT_ATTRS if k not in f.attrs]
     if missing:
         raise SessionFormatError(f"{path}: missing root attributes: {', '.join(missing)}")
-    if str(_py(f.attrs["color_filter"])) not in COLOR_FILTERS:
+    if str(from_hdf5(f.attrs["color_filter"])) not in COLOR_FILTERS:
         raise SessionFormatError(f"{path}: unknown color_filter {f.attrs['color_filter']!r}")
     for name, dtype in _REQUIRED.items():
         if name not in f:

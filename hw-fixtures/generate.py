@@ -40,7 +40,7 @@ from evcap.streams import Frames, TriggerKind, Triggers
 
 HERE = Path(__file__).resolve().parent
 SHARED = Path(os.environ.get("EVCAP_SHARED", HERE.parent.parent / "shared"))
-DEMO_DATA = HERE.parent / "evcap" / "demo_data"  # the demo's fixtures ship inside the package
+DEMO_DATA = HERE.parent / "app" / "demo_data"  # the demo's fixtures ship inside the package
 SAMPLE = SHARED / "data" / "davis346-sample" / "davis346_test_data.aedat4"
 SCENES = HERE.parent / "sim" / "scenes"
 W, H = 346, 260

@@ -1,15 +1,15 @@
 """What a reconstruction leaves behind: the Gaussians as a 3DGS PLY, rendered views as PNG
-(and exact values as .npz), the checkpoints and the settings as TOML (the figures go to
-OUT/metrics.json through evcap.records.ReconstructionResult)."""
+(and exact values as .npz) and the checkpoints, where evcap.records.ReconstructionFolder puts
+them (it also writes the settings and the figures)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from evcap.atomic_write import atomic_path
 from evcap.errors import InputError
 from evcap.images import srgb
 from evcap.recon.config import Backend
@@ -18,6 +18,7 @@ from evcap.recon.material import MaterialField
 from evcap.recon.radiance import RadianceField
 from evcap.recon.sh import C0
 from evcap.recon.visibility import Bounce
+from evcap.records.reconstruction_folder import ReconstructionFolder, Renders, Split
 
 
 def write_ply(field: RadianceField, path: Path) -> None:
@@ -68,35 +69,38 @@ def read_ply_header(path: Path) -> tuple[int, list[str]]:
 
 
 def write_views(
-    views: dict[str, np.ndarray], folder: Path, name: str, cc: np.ndarray | None
+    views: dict[str, np.ndarray],
+    out: ReconstructionFolder,
+    kind: Renders,
+    split: Split,
+    cc: np.ndarray | None,
 ) -> None:
     """PNGs of each view: radiance (sRGB; and color-corrected when ``cc`` is given), depth
     (16-bit, thousandths of a scene unit), normals ((n + 1) / 2, camera frame), and base color
-    (sRGB) and roughness (0..255) when the views have them; the exact values in
-    ``{name}.npz``."""
+    (sRGB) and roughness (0..255) when the views have them; the exact values in one .npz."""
     import cv2
 
-    folder.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(folder / f"{name}.npz", **views)
+    out.renders(kind).mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(out.views_values(kind, split), **views)
 
     def rgb8(x: np.ndarray) -> np.ndarray:
         return (np.clip(x, 0, 1)[..., ::-1] * 255 + 0.5).astype(np.uint8)
 
     for i in range(len(views["radiance"])):
-        stem = folder / f"{name}_{i:03d}"
-        cv2.imwrite(f"{stem}_radiance.png", rgb8(srgb(views["radiance"][i])))
+        images = {
+            "radiance": rgb8(srgb(views["radiance"][i])),
+            "depth": np.clip(np.round(views["depth"][i] * 1000), 0, 65535).astype(np.uint16),
+            "normal": rgb8(views["normal"][i] * 0.5 + 0.5),
+        }
         if cc is not None:
-            cv2.imwrite(
-                f"{stem}_radiance_cc.png", rgb8(srgb(views["radiance"][i] * cc[:, 0] + cc[:, 1]))
-            )
-        depth = np.clip(np.round(views["depth"][i] * 1000), 0, 65535).astype(np.uint16)
-        cv2.imwrite(f"{stem}_depth.png", depth)
-        cv2.imwrite(f"{stem}_normal.png", rgb8(views["normal"][i] * 0.5 + 0.5))
+            images["radiance_cc"] = rgb8(srgb(views["radiance"][i] * cc[:, 0] + cc[:, 1]))
         if "base_color" in views:
-            cv2.imwrite(f"{stem}_base_color.png", rgb8(srgb(views["base_color"][i])))
+            images["base_color"] = rgb8(srgb(views["base_color"][i]))
         if "roughness" in views:
             rough = np.clip(views["roughness"][i], 0, 1)
-            cv2.imwrite(f"{stem}_roughness.png", (rough * 255 + 0.5).astype(np.uint8))
+            images["roughness"] = (rough * 255 + 0.5).astype(np.uint8)
+        for name, image in images.items():
+            cv2.imwrite(str(out.view_image(kind, split, i, name)), image)
 
 
 def write_image(linear: np.ndarray, path: Path) -> None:
@@ -127,26 +131,8 @@ def save_material_checkpoint(field: MaterialField, path: Path) -> None:
 
 
 def _save(data: dict, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    torch.save(data, tmp)
-    tmp.replace(path)  # a crash mid-write leaves the previous checkpoint
-
-
-def write_toml(sections: dict[str, dict], path: Path) -> None:
-    """A flat TOML of scalar settings, one table per section."""
-    lines = []
-    for section, values in sections.items():
-        lines.append(f"[{section}]")
-        for k, v in values.items():
-            if isinstance(v, bool):
-                lines.append(f"{k} = {str(v).lower()}")
-            elif isinstance(v, int | float):
-                lines.append(f"{k} = {v!r}")
-            elif v is not None:
-                lines.append(f"{k} = {json.dumps(str(v))}")
-        lines.append("")
-    path.write_text("\n".join(lines))
+    with atomic_path(path) as partial:  # a crash mid-write leaves the previous checkpoint
+        torch.save(data, partial)
 
 
 def load_checkpoint(

@@ -11,7 +11,7 @@ import dataclasses
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Literal, assert_never
+from typing import assert_never
 
 import numpy as np
 import torch
@@ -40,7 +40,6 @@ from evcap.recon.export import (
     save_material_checkpoint,
     write_image,
     write_ply,
-    write_toml,
     write_views,
 )
 from evcap.recon.material import (
@@ -65,15 +64,20 @@ from evcap.recon.radiance import (
 )
 from evcap.recon.rasterize import pick_backend
 from evcap.recon.shading import mip_chain
-from evcap.records import Figures, GroundTruth, Poses, ReconstructionResult, TruthViews
-from evcap.records.result import RESULT_FILE
+from evcap.records import (
+    Figures,
+    GroundTruth,
+    Poses,
+    ReconstructionFolder,
+    ReconstructionResult,
+    TruthViews,
+)
+from evcap.records.reconstruction_folder import Training
 from evcap.session import Session
 from evcap.trajectory_alignment import apply_similarity, pose_errors
 
-Training = Literal["radiance", "material"]  # stage I, stage II
 TRACK_VIEWS = 8  # views rendered along the path when the session has no held-out views
 HISTORY_VIEWS = 2  # held-out views rendered for the accuracy-versus-time curve
-POSES_FILE = "poses.h5"  # OUT's refined trajectory
 ESTIMATED = ("evcap poses", "evcap reconstruct")  # sources of poses --refine-poses auto refines
 
 
@@ -159,7 +163,7 @@ def reconstruct(
     if set(ablate) - set(ABLATIONS):
         raise InputError(f"unknown ablation(s) {sorted(set(ablate) - set(ABLATIONS))}")
     runs = _trainings(stage)
-    out = Path(out)
+    out = ReconstructionFolder(out)
     mconfig = cfg.material_preset(
         preset, iterations=material_iterations, visibility=visibility, indirect=indirect
     )
@@ -167,7 +171,7 @@ def reconstruct(
     device = pick_device(device)
     backend = pick_backend(backend, device)
     if "radiance" not in runs:
-        field, settings = load_checkpoint(out / "checkpoint" / "radiance.pt", device, backend)
+        field, settings = load_checkpoint(out.checkpoint("radiance"), device, backend)
         config = cfg.RadianceConfig(**settings)
     else:
         named = {"resolution": resolution, "iterations": iterations, "zero_events": zero_events}
@@ -190,10 +194,10 @@ def reconstruct(
         }
         states = _saved_states(out, runs, settings, resume, overwrite)
         if "radiance" in runs and states["radiance"] is None and states["material"] is not None:
-            field, _ = load_checkpoint(out / "checkpoint" / "radiance.pt", device, backend)
+            field, _ = load_checkpoint(out.checkpoint("radiance"), device, backend)
         data = load_training_data(session, config, device)
-        if "radiance" not in runs and (out / POSES_FILE).exists():  # stage I refined them
-            data.track = Poses.read_file(out / POSES_FILE)
+        if "radiance" not in runs and out.poses.exists():  # stage I refined them
+            data.track = Poses.read_file(out.poses)
         gt = GroundTruth.read(session) if GroundTruth.present(session) else None
         truth = gt.held_out_views() if gt is not None else TruthViews(np.zeros((0, 4, 4)))
         if environment is not None:  # another light than the truth's: shown, not scored
@@ -205,11 +209,11 @@ def reconstruct(
             return _view_poses(track, data.windows.frame_times, truth, gt)
 
         poses = poses_of(data.track)
-        out.mkdir(parents=True, exist_ok=True)
+        out.root.mkdir(parents=True, exist_ok=True)
         # stage I is not run again for stage II alone, nor to go on with an interrupted stage II
         skip = "radiance" not in runs or states["material"] is not None
         resumed = skip or states["radiance"] is not None
-        before = _previous_result(out) if resumed else ReconstructionResult()
+        before = out.previous_result() if resumed else ReconstructionResult()
         result = before if skip else ReconstructionResult()
         stopped = False
         if not skip:
@@ -245,7 +249,7 @@ def reconstruct(
                 say(_going_on("stage II", states["material"], mconfig.iterations))
             earlier = (before.material_seconds or 0.0) if states["material"] is not None else 0.0
             started = time.perf_counter()
-            path = resume_.state_path(out, "material")
+            path = out.training_state("material")
             mfit = train_material(
                 field,
                 data,
@@ -272,7 +276,7 @@ def reconstruct(
         result.interrupted = mfit.interrupted
         result.training_log["material"] = [dataclasses.asdict(x) for x in mfit.log]
         if not mfit.interrupted:
-            resume_.state_path(out, "material").unlink(missing_ok=True)
+            out.training_state("material").unlink(missing_ok=True)
     result.views = "held-out test views" if truth.maps() else "views along the camera path"
     sections = {
         "reconstruct": {
@@ -289,10 +293,10 @@ def reconstruct(
     }
     if "material" in runs:
         sections["material"] = cfg.to_dict(mconfig)
-    write_toml(sections, out / "config.toml")
-    result.write(out)
-    if write_poses and (out / POSES_FILE).exists():
-        Poses.read_file(out / POSES_FILE).write(session_path)
+    out.write_config(sections)
+    out.write_result(result)
+    if write_poses and out.poses.exists():
+        Poses.read_file(out.poses).write(session_path)
     return result
 
 
@@ -327,22 +331,19 @@ def _view_poses(
     return apply_similarity(truth.T_world_cam, 1 / scale, R.T, -R.T @ fit["t"] / scale)
 
 
-def _previous_result(out: Path) -> ReconstructionResult:
-    """What OUT/metrics.json holds of an earlier run (nothing when it is not there)."""
-    if not (out / RESULT_FILE).exists():
-        return ReconstructionResult()
-    return ReconstructionResult.read(out)
-
-
 def _saved_states(
-    out: Path, runs: tuple[Training, ...], settings: dict, resume: bool, overwrite: bool
+    out: ReconstructionFolder,
+    runs: tuple[Training, ...],
+    settings: dict,
+    resume: bool,
+    overwrite: bool,
 ) -> dict[Training, dict | None]:
     """The training states to go on from ({"radiance": ..., "material": ...}, None where a
     stage starts afresh); refuses to replace what OUT holds unless ``overwrite``."""
     states: dict[Training, dict | None] = {"radiance": None, "material": None}
-    saved = [n for n in runs if resume_.state_path(out, n).exists()]
+    saved = [n for n in runs if out.training_state(n).exists()]
     for name in saved if resume else ():
-        states[name] = resume_.load_state(resume_.state_path(out, name), settings[name])
+        states[name] = resume_.load_state(out.training_state(name), settings[name])
         if states[name] is None and not overwrite:
             raise InputError(
                 f"{out} holds a reconstruction interrupted in stage "
@@ -351,16 +352,15 @@ def _saved_states(
             )
     if states["radiance"] is not None:
         states["material"] = None  # stage II starts afresh after it
-    if not any(v is not None for v in states.values()):
-        done = out / "gaussians.ply" if "radiance" in runs else out / "checkpoint" / "material.pt"
-        if done.exists() and not overwrite:
-            raise InputError(
-                f"{out} already holds a reconstruction; choose another folder or pass --force"
-            )
+    nothing_saved = all(v is None for v in states.values())
+    if nothing_saved and out.stage_done(runs[0]) and not overwrite:
+        raise InputError(
+            f"{out} already holds a reconstruction; choose another folder or pass --force"
+        )
     # a stage that runs afresh makes what was saved of it (and, for stage I, of stage II) old
     for name in states if "radiance" in runs else runs:
         if states[name] is None:
-            resume_.state_path(out, name).unlink(missing_ok=True)
+            out.training_state(name).unlink(missing_ok=True)
     return states
 
 
@@ -376,7 +376,7 @@ def _stage_radiance(
     config: cfg.RadianceConfig,
     poses_of: Callable[[Poses], np.ndarray],
     truth: TruthViews,
-    out: Path,
+    out: ReconstructionFolder,
     seed: int,
     device: Device,
     backend: Backend,
@@ -399,7 +399,7 @@ def _stage_radiance(
             out["normal_mae_deg"] = normal_mae_deg(views["normal"], seen.normal)
         return out
 
-    path = resume_.state_path(out, "radiance")
+    path = out.training_state("radiance")
     fit = train_radiance(
         data,
         config,
@@ -415,16 +415,16 @@ def _stage_radiance(
     track = data.track
     if fit.corrections is not None:
         track = fit.corrections.refined(track)
-        track.write_file(out / POSES_FILE)
+        track.write_file(out.poses)
     else:
-        (out / POSES_FILE).unlink(missing_ok=True)
+        out.poses.unlink(missing_ok=True)
     views = render_views(field, poses_of(track), data.optics, device)
     scored = bool(truth.maps())
     figures = metrics(views, truth) if scored else {}
     cc = None if truth.radiance is None else fit_color_correction(views["radiance"], truth.radiance)
-    write_ply(field, out / "gaussians.ply")
-    write_views(views, out / "renders", "test" if scored else "path", cc)
-    save_checkpoint(field, cfg.to_dict(config), out / "checkpoint" / "radiance.pt")
+    write_ply(field, out.ply)
+    write_views(views, out, "radiance", "test" if scored else "path", cc)
+    save_checkpoint(field, cfg.to_dict(config), out.checkpoint("radiance"))
     if not fit.interrupted:
         path.unlink(missing_ok=True)
     return fit, figures, track
@@ -437,7 +437,7 @@ def _material_outputs(
     truth: TruthViews,
     optics: SensorOptics,
     environment: np.ndarray | None,
-    out: Path,
+    out: ReconstructionFolder,
     device: Device,
 ) -> dict[str, float | None]:
     """Stage II's renders, light, relit views, checkpoint; its figures, with what stage I's
@@ -449,18 +449,18 @@ def _material_outputs(
     before = render_views(radiance, poses, optics, device)["radiance"] if scored else None
     if scored:
         figures.update(material_metrics(views, truth, before))
-    name = "test" if scored else "path"
+    split = "test" if scored else "path"
     cc = None if truth.radiance is None else fit_color_correction(views["radiance"], truth.radiance)
-    write_views(views, out / "renders" / "material", name, cc)
+    write_views(views, out, "material", split, cc)
     light = mip_chain(field.light.radiance_faces().detach())
-    write_image(environment_image(light), out / "environment.png")
+    write_image(environment_image(light), out.environment)
     if environment is not None:
         new = light_from_image(environment, light[0].shape[-1], device)
         relit = render_views(field, poses, optics, device, new)
         if truth.relit_radiance is not None:
             figures.update(relit_metrics(relit["radiance"], truth, before))
         for i, image in enumerate(relit["radiance"]):
-            write_image(image, out / "renders" / "relit" / f"{name}_{i:03d}.png")
-        write_image(environment_image(new), out / "renders" / "relit" / "environment.png")
-    save_material_checkpoint(field, out / "checkpoint" / "material.pt")
+            write_image(image, out.view_image("relit", split, i, "radiance"))
+        write_image(environment_image(new), out.relit_environment)
+    save_material_checkpoint(field, out.checkpoint("material"))
     return figures

@@ -15,14 +15,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from evcap.atomic_write import atomic_path
 from evcap.errors import InputError
 from evcap.records import Calibration, Poses
 from evcap.session import Session
-
-
-def state_path(out: Path, stage: str) -> Path:
-    """Where an unfinished stage's training state lies ("radiance" or "material")."""
-    return out / "checkpoint" / f"{stage}-state.pt"
 
 
 @contextmanager
@@ -67,10 +63,8 @@ def session_fingerprint(session: Session) -> str:
 
 def save_state(path: Path, state: dict, settings: dict) -> None:
     """Write a training state; a crash mid-write leaves the previous one."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    torch.save({**state, "settings": settings}, tmp)
-    tmp.replace(path)
+    with atomic_path(path) as partial:
+        torch.save({**state, "settings": settings}, partial)
 
 
 def load_state(path: Path, settings: dict) -> dict | None:

@@ -12,7 +12,6 @@ import contextlib
 import json
 import math
 import re
-import tomllib
 import zipfile
 import zlib
 from datetime import datetime
@@ -21,12 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
+from evcap.atomic_write import write_text_atomic
 from evcap.errors import InputError, InputNotFoundError
 from evcap.records import (
     Calibration,
     Figures,
     GroundTruth,
     Poses,
+    ReconstructionFolder,
     ReconstructionResult,
     TruthViews,
 )
@@ -48,7 +49,6 @@ from evcap.report.images import (
 from evcap.report.svg import COLORS, Series, Track, line_plot, trajectory_views
 from evcap.session import Session
 
-REPORT = "report.html"
 # the sections, in order: (anchor, heading)
 SECTIONS = (
     ("session", "Session"),
@@ -61,7 +61,7 @@ SECTIONS = (
     ("progress", "Accuracy versus time"),
 )
 EDGE_MAPS = 3  # each takes about 2 s for a 346 x 260 sensor on one CPU core
-EDGE_SLICE_MS = 10.0  # stage II's default, when config.toml does not say
+EDGE_SLICE_MS = 10.0  # stage II's default, when its settings do not say
 MAX_VIEWS = 3  # test views shown side by side with the truth
 VIEW_PX = 200  # displayed width of each view's maps
 MAP_PX = 346  # displayed width of a calibration map
@@ -107,80 +107,44 @@ nav a { margin-right: 10px; }
 
 
 def write_report(out: str | Path, session: str | Path | None = None) -> Path:
-    """Write ``out``/report.html for the reconstruction folder ``out`` and its session
-    (default: the one its config.toml names); returns the page's path."""
-    out = Path(out)
-    config = _read_config(out)
-    session_path = _session_path(out, config, session)
-    result, result_note = _read_result(out)
+    """Write the report of the reconstruction folder ``out`` and its session (default: the one
+    it was made from); returns the page's path (OUT/report.html)."""
+    folder = ReconstructionFolder(out)
+    folder.check()
+    session_path = _session_path(folder, session)
+    result, result_note = _read_result(folder)
+    run = folder.settings("reconstruct")
     with Session.open(session_path) as s:
         bodies = {
-            "session": _session_section(s, config),
+            "session": _session_section(s, run),
             "calibration": _calibration_section(s),
             "trajectory": _trajectory_section(s),
-            "edges": _edges_section(s, config),
-            "maps": _maps_section(out, s),
+            "edges": _edges_section(s, folder.settings("material")),
+            "maps": _maps_section(folder, s),
         }
-    bodies["relit"] = _relit_section(out)
+    bodies["relit"] = _relit_section(folder)
     bodies["metrics"] = result_note or _metrics_section(result)
     bodies["progress"] = _progress_section(result or ReconstructionResult())
-    path = out / REPORT
-    path.write_text(_page(out, bodies), encoding="utf-8")
-    return path
+    write_text_atomic(folder.report, _page(folder.root, bodies))
+    return folder.report
 
 
 # -- inputs ----------------------------------------------------------------------------------
 
 
-def _read_config(out: Path) -> dict:
-    """OUT's config.toml ({} when there is none), after checking that OUT is a
-    reconstruction folder."""
-    if not out.is_dir():
-        raise InputNotFoundError(
-            f"{out}: no such folder; give the OUT folder of `evcap reconstruct SESSION -o OUT`"
-        )
-    marks = ("config.toml", "metrics.json", "checkpoint/radiance.pt")
-    if not any((out / m).exists() for m in marks):
-        raise InputError(
-            f"{out} is not a reconstruction folder (it has none of {', '.join(marks)}); "
-            "give the OUT folder of `evcap reconstruct SESSION -o OUT`"
-        )
-    path = out / "config.toml"
-    if not path.exists():
-        return {}
-    try:
-        return tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"{path} is not valid TOML: {e}") from None
+def _session_path(folder: ReconstructionFolder, session: str | Path | None) -> Path:
+    if session is None:
+        return folder.session()
+    path = Path(session)
+    if not path.is_file():
+        raise InputNotFoundError(f"session {path}: no such file (check --session)")
+    return path
 
 
-def _session_path(out: Path, config: dict, session: str | Path | None) -> Path:
-    if session is not None:
-        path = Path(session)
-        if not path.is_file():
-            raise InputNotFoundError(f"session {path}: no such file (check --session)")
-        return path
-    named = config.get("reconstruct", {}).get("session")
-    if not named:
-        raise InputError(
-            f"{out}/config.toml does not name the session the reconstruction was made from; "
-            "name it with --session SESSION"
-        )
-    path = Path(named)
-    # a relative path is relative to where `evcap reconstruct` ran: try here, then beside OUT
-    for candidate in (path, out / path, out.parent / path):
-        if candidate.is_file():
-            return candidate
-    raise InputNotFoundError(
-        f"the session {named} that {out}/config.toml names is not there (seen from "
-        f"{Path.cwd()}); name it with --session SESSION"
-    )
-
-
-def _read_result(out: Path) -> tuple[ReconstructionResult | None, str]:
+def _read_result(folder: ReconstructionFolder) -> tuple[ReconstructionResult | None, str]:
     """(OUT's result, "") or (None, a note saying why there is none)."""
     try:
-        return ReconstructionResult.read(out), ""
+        return folder.read_result(), ""
     except InputError as e:
         return None, _missing(str(e))
 
@@ -250,11 +214,11 @@ def _page(out: Path, bodies: dict[str, str]) -> str:
 # -- 1. the session --------------------------------------------------------------------------
 
 
-def _session_section(s: Session, config: dict) -> str:
+def _session_section(s: Session, run: dict) -> str:
+    """The session's summary, and how the reconstruction was asked for (``run``)."""
     from evcap.summary import format_summary, summarize
 
     parts = [f"<pre>{escape(format_summary(summarize(s)))}</pre>"]
-    run = config.get("reconstruct", {})
     if run:
         keys = ("stage", "preset", "device", "backend", "seed", "ablate", "relight")
         rows = [(k, str(run[k])) for k in keys if k in run and run[k] != ""]
@@ -452,13 +416,14 @@ def _trajectory_section(s: Session) -> str:
 # -- 4. event edge maps ----------------------------------------------------------------------
 
 
-def _edges_section(s: Session, config: dict) -> str:
+def _edges_section(s: Session, material: dict) -> str:
+    """Edge maps as stage II makes them (``material``: its settings, for the slice)."""
     from evcap.edge_maps import edge_map
 
     span = s.time_range()
     if span is None or s.n_events == 0:
         return _missing("The session has no events.")
-    slice_us = round(float(config.get("material", {}).get("edge_slice_ms", EDGE_SLICE_MS)) * 1000)
+    slice_us = round(float(material.get("edge_slice_ms", EDGE_SLICE_MS)) * 1000)
     if span[1] - span[0] < slice_us:
         return _missing("The session is shorter than one edge map's slice of events.")
     w, h = s.sensor.width, s.sensor.height
@@ -500,7 +465,7 @@ def _pairs(figures: list[str]) -> str:
 # -- 5. recovered maps and the truth ---------------------------------------------------------
 
 
-def _maps_section(out: Path, s: Session) -> str:
+def _maps_section(folder: ReconstructionFolder, s: Session) -> str:
     truth, unreadable = None, []
     if GroundTruth.present(s):
         try:
@@ -508,30 +473,28 @@ def _maps_section(out: Path, s: Session) -> str:
         except InputError as e:
             unreadable.append(_missing(f"The session's truth cannot be read: {e}"))
     stages = []
-    for label, folder in (
-        ("stage I: radiance field", out / "renders"),
-        ("stage II: material, shaded", out / "renders" / "material"),
+    for label, kind in (
+        ("stage I: radiance field", "radiance"),
+        ("stage II: material, shaded", "material"),
     ):
-        for name in ("test", "path"):
-            path = folder / f"{name}.npz"
+        for split in ("test", "path"):
+            path = folder.views_values(kind, split)
             if path.exists():
                 try:
-                    stages.append((label, name, dict(np.load(path))))
+                    stages.append((label, split, dict(np.load(path))))
                 except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as e:
-                    unreadable.append(
-                        _missing(f"{path.relative_to(out)} is not readable ({e}); run again.")
-                    )
+                    where = path.relative_to(folder.root)
+                    unreadable.append(_missing(f"{where} is not readable ({e}); run again."))
                 break
     notes = "".join(unreadable)
     if not stages:
-        pngs = sorted((out / "renders").rglob("*.png")) if (out / "renders").is_dir() else []
-        pngs = [p for p in pngs if "relit" not in p.parts]
+        pngs = folder.rendered_images()
         if not pngs:
-            return notes + _missing("There are no rendered views (renders/ is missing or empty).")
+            return notes + _missing("There are no rendered views (none was written, or kept).")
         figures = [_figure(file_data_uri(p), escape(p.name), VIEW_PX) for p in pngs[:24]]
         return (
             notes
-            + _missing("No readable renders/*.npz: the PNGs as they were written.")
+            + _missing("No readable values of the views: the PNGs as they were written.")
             + ("".join(figures))
         )
     kind = stages[0][1]
@@ -621,21 +584,20 @@ def _map_image(key: str, value: np.ndarray, lo: float, hi: float) -> str:
 # -- 6. relit views and the light ------------------------------------------------------------
 
 
-def _relit_section(out: Path) -> str:
+def _relit_section(folder: ReconstructionFolder) -> str:
     parts = []
-    if (out / "environment.png").exists():
+    if folder.environment.exists():
         parts.append(
             _figure(
-                file_data_uri(out / "environment.png"),
+                file_data_uri(folder.environment),
                 "the light stage II learnt (latitude-longitude, z up)",
                 360,
             )
         )
-    relit = out / "renders" / "relit"
-    views = sorted(p for p in relit.glob("*.png") if p.name != "environment.png")
-    if (relit / "environment.png").exists():
+    views = folder.relit_views()
+    if folder.relit_environment.exists():
         parts.append(
-            _figure(file_data_uri(relit / "environment.png"), "the new light (--relight)", 360)
+            _figure(file_data_uri(folder.relit_environment), "the new light (--relight)", 360)
         )
     if not parts:
         return _missing("No environment map and no relit views (stage II did not run).")

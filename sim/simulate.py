@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from evcap.atomic_write import atomic_path
 from evcap.errors import InputError
 from evcap.events import Events
 from evcap.records import Calibration, GroundTruth, Poses, TruthViews
@@ -429,8 +430,7 @@ def simulate(
     # written under another name and renamed when whole: an interrupted simulation leaves
     # nothing half-made (nor harms what ``output`` held), and is repeated exactly by running
     # it again
-    partial = output.with_name(output.name + ".partial")
-    try:
+    with atomic_path(output) as partial:
         with SessionWriter(partial, sensor, attrs=attrs, overwrite=True) as writer:
             stats = sim.run(writer)
         sim.ground_truth().write(partial)
@@ -438,10 +438,6 @@ def simulate(
         t = np.round(times * 1e6).astype(np.int64)
         Poses(t, sim.trajectory.poses(times), source="ground truth").write(partial)
         sim.calibration().write(partial)
-    except BaseException:
-        partial.unlink(missing_ok=True)
-        raise
-    partial.replace(output)
     if fixture is not None:
         from evcap.sim.fixture import write_session_fixture
 

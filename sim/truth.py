@@ -25,6 +25,7 @@ from pathlib import Path
 
 import h5py
 
+from evcap.atomic_write import atomic_path
 from evcap.errors import InputError, InputNotFoundError, SessionFormatError
 from evcap.records import GroundTruth, Poses, TruthViews
 
@@ -58,14 +59,12 @@ def write_truth(session_path: str | Path, truth_path: str | Path) -> None:
         threshold_on=None,
         threshold_off=None,
     )
-    truth_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = truth_path.with_name(truth_path.name + ".tmp")
-    with h5py.File(tmp, "w", track_order=True) as out:
-        out.attrs["truth_version"] = TRUTH_VERSION
-        out.attrs["source"] = session_path.name
-    small.write(tmp, half=True)
-    trajectory.write(tmp)
-    tmp.replace(truth_path)
+    with atomic_path(truth_path) as partial:
+        with h5py.File(partial, "w", track_order=True) as out:
+            out.attrs["truth_version"] = TRUTH_VERSION
+            out.attrs["source"] = session_path.name
+        small.write(partial, half=True)
+        trajectory.write(partial)
 
 
 def read_truth(truth_path: str | Path) -> tuple[GroundTruth, Poses]:

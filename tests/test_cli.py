@@ -29,7 +29,7 @@ def test_help_lists_every_command_with_one_line():
 def test_help_imports_nothing_heavy():
     # Its speed is measured in bench/cli_startup.py; what keeps it fast is checked here.
     code = (
-        "import sys\nfrom evcap.cli import main\n"
+        "import sys\nfrom evcap.app.cli import main\n"
         "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
         f"print([m for m in {HEAVY!r} if m in sys.modules])"
     )
@@ -44,7 +44,7 @@ def test_info_imports_nothing_heavy(tmp_path):
     with SessionWriter(tmp_path / "s.h5", SensorInfo("simulated", 8, 8)) as w:
         w.append_events(Events([1], [2], [3], [1], 8, 8))
     code = (
-        "import sys\nfrom evcap.cli import main\n"
+        "import sys\nfrom evcap.app.cli import main\n"
         f"main(['info', {str(tmp_path / 's.h5')!r}])\n"
         f"print([m for m in {HEAVY!r} if m in sys.modules])"
     )

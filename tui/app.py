@@ -22,6 +22,7 @@ from textual.widgets import Footer, Header
 
 from evcap.acquire.decoder import Decoded
 from evcap.acquire.recorder import (
+    NORMAL_ENDS,
     BiasChanged,
     CameraLost,
     Recorder,
@@ -265,7 +266,7 @@ class MonitorApp(App):
         elif isinstance(event, RecordingStopped):
             self.recording_path = None
             r = self.last_result = event.result
-            severity = "information" if r.end_reason in ("stopped", "end of replay") else "error"
+            severity = "information" if r.end_reason in NORMAL_ENDS else "error"
             self.notify(f"{r.path.name}: {r.events:,} events ({r.end_reason})", severity=severity)
         elif isinstance(event, BiasChanged):
             self.biases[event.name] = event.code

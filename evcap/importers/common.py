@@ -4,11 +4,10 @@ they write their output."""
 from __future__ import annotations
 
 import contextlib
-import os
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+from evcap.atomic_write import atomic_path
 from evcap.errors import OutputExistsError
 
 
@@ -36,13 +35,7 @@ def check_output(dst: Path, overwrite: bool) -> None:
         raise OutputExistsError(f"{dst} exists; choose another name or pass --force")
 
 
-@contextlib.contextmanager
-def partial_output(dst: Path) -> Iterator[Path]:
+def partial_output(dst: Path) -> contextlib.AbstractContextManager[Path]:
     """A path beside ``dst`` to write the session to, renamed to ``dst`` when the block ends
     without an error: a failed import leaves nothing under ``dst``."""
-    tmp = dst.with_name(dst.name + ".partial")
-    try:
-        yield tmp
-        os.replace(tmp, dst)
-    finally:
-        tmp.unlink(missing_ok=True)
+    return atomic_path(dst)

@@ -1,8 +1,10 @@
 """The records the steps exchange through a session and a reconstruction folder, each the one
-reader and writer of its group or file: /calibration, /poses, /gt and OUT/metrics.json."""
+reader and writer of its group or files: /calibration, /poses, /gt, and OUT/ (the
+reconstruction folder, with its metrics.json)."""
 
 from evcap.records.calibration import Calibration, read_intrinsics
 from evcap.records.poses import Poses
+from evcap.records.reconstruction_folder import ReconstructionFolder
 from evcap.records.result import Figures, ReconstructionResult
 from evcap.records.truth import GroundTruth, TruthViews
 
@@ -11,6 +13,7 @@ __all__ = [
     "Figures",
     "GroundTruth",
     "Poses",
+    "ReconstructionFolder",
     "ReconstructionResult",
     "TruthViews",
     "read_intrinsics",

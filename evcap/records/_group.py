@@ -52,15 +52,3 @@ def array(
 def optional(g: h5py.Group, name: str, place: str, dtype=np.float64, shape=None):
     """``array`` where ``g`` has the dataset, else None."""
     return array(g, name, place, dtype, shape) if name in g else None
-
-
-def attrs_of(g: h5py.Group) -> dict:
-    """The group's attributes as Python values."""
-    out = {}
-    for key, value in g.attrs.items():
-        if isinstance(value, bytes):
-            value = value.decode()
-        elif isinstance(value, np.generic):
-            value = value.item()
-        out[key] = value
-    return out

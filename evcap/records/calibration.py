@@ -11,7 +11,8 @@ from typing import Literal, get_args
 import numpy as np
 
 from evcap.errors import InputError
-from evcap.records._group import Source, array, attrs_of, find_group, optional, path_of, where
+from evcap.hdf5_attributes import read_attributes
+from evcap.records._group import Source, array, find_group, optional, path_of, where
 from evcap.session import write_group
 
 GROUP = "calibration"
@@ -89,7 +90,7 @@ class Calibration:
                 "`evcap calibrate` on it, or `evcap calibrate --apply-to` from a calibration "
                 "recording of the same camera"
             )
-        a = attrs_of(g)
+        a = read_attributes(g)
         sensor = getattr(source, "sensor", None)
         width = int(a.get("width", sensor.width if sensor else 0))
         height = int(a.get("height", sensor.height if sensor else 0))

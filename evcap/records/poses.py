@@ -14,7 +14,8 @@ import h5py
 import numpy as np
 
 from evcap.errors import InputError
-from evcap.records._group import Source, array, attrs_of, find_group, optional, path_of, where
+from evcap.hdf5_attributes import read_attributes
+from evcap.records._group import Source, array, find_group, optional, path_of, where
 from evcap.rotations import quat_to_rotmat, rotmat_to_quat, slerp
 from evcap.session import write_group
 
@@ -73,7 +74,7 @@ class Poses:
                 f"{path_of(source)} has no camera poses (/{GROUP}); run `evcap poses` on it first"
             )
         place = where(source, GROUP)
-        a = attrs_of(g)
+        a = read_attributes(g)
         for key in ("frame", "interpolation"):
             a.pop(key, None)
         try:

@@ -1,6 +1,6 @@
-"""OUT/metrics.json: what a reconstruction found. ``ReconstructionResult`` is its one writer
-(`evcap reconstruct`) and reader (the CLI, the demo, the report, the benches); ``Figures``
-names and describes each accuracy figure once."""
+"""What a reconstruction found (OUT/metrics.json, through ReconstructionFolder).
+``ReconstructionResult`` is its one writer (`evcap reconstruct`) and reader (the CLI, the
+demo, the report, the benches); ``Figures`` names and describes each accuracy figure once."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
+from evcap.atomic_write import write_text_atomic
 from evcap.errors import InputError
 
-RESULT_FILE = "metrics.json"
 STAGE_I, STAGE_II, RUN = "stage I (radiance)", "stage II (material)", "run"
 # the figures a user is shown after a run (`evcap reconstruct`, the demo, `evcap batch`'s
 # summary), in this order; metrics.json and the report hold them all
@@ -172,15 +172,14 @@ class ReconstructionResult:
         figures = Figures.of({k: data[k] for k in Figures.names() if k in data})
         return cls(figures=figures, **{k: v for k, v in data.items() if k in names})
 
-    def write(self, out: str | Path) -> Path:
-        path = Path(out) / RESULT_FILE
-        path.write_text(json.dumps(self.to_json(), indent=2) + "\n")
+    def write(self, path: Path) -> Path:
+        write_text_atomic(path, json.dumps(self.to_json(), indent=2) + "\n")
         return path
 
     @classmethod
-    def read(cls, out: str | Path) -> ReconstructionResult:
-        """OUT/metrics.json; InputError naming the problem when it is missing or damaged."""
-        path = Path(out) / RESULT_FILE
+    def read(cls, path: Path) -> ReconstructionResult:
+        """The result in ``path``; InputError naming the problem when it is missing or
+        damaged."""
         if not path.exists():
             raise InputError(f"{path} is not there: the reconstruction did not finish")
         try:

@@ -11,7 +11,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from evcap.errors import InputError
-from evcap.records._group import Source, array, attrs_of, find_group, optional, path_of, where
+from evcap.hdf5_attributes import read_attributes
+from evcap.records._group import Source, array, find_group, optional, path_of, where
 from evcap.records.poses import Poses
 from evcap.session import write_group
 
@@ -134,7 +135,7 @@ class GroundTruth:
         try:
             path = _views(g, "", place, along_path)
             held_out = _views(g, HELD_OUT, place, True) if f"{HELD_OUT}T_world_cam" in g else None
-            a = attrs_of(g)
+            a = read_attributes(g)
             hot = a.pop("hot_pixels", None)
             for name in (*MAP_NOTES, "relight_environment"):
                 a.pop(name, None)

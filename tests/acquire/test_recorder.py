@@ -1,5 +1,7 @@
 """Recording the hardware-replay fixtures, and the recorder under faults."""
 
+import ast
+import inspect
 import json
 import signal
 import subprocess
@@ -12,8 +14,9 @@ import pytest
 import usb.core
 
 from evcap.acquire import protocol as P
+from evcap.acquire import recorder as recorder_module
 from evcap.acquire.device import Davis346, DeviceSpec
-from evcap.acquire.recorder import Recorder, RecordOptions
+from evcap.acquire.recorder import END_REASONS, NORMAL_ENDS, Recorder, RecordOptions
 from evcap.errors import DeviceError, DeviceLostError, DevicePermissionError, FirmwareError
 from evcap.session import Session
 from evcap.sim.fixture import recorded_arrays
@@ -250,7 +253,7 @@ def small_disk(limit: int):
 
 def test_a_failing_disk_gives_a_clear_error(tmp_path):
     out = tmp_path / "s.h5"
-    code = "import sys; from evcap.cli import main; sys.exit(main(sys.argv[1:]))"
+    code = "import sys; from evcap.app.cli import main; sys.exit(main(sys.argv[1:]))"
     r = subprocess.run(
         [
             sys.executable,
@@ -410,7 +413,7 @@ def test_bad_device_names(tmp_path):
 
 def test_record_does_not_import_torch(tmp_path):
     code = (
-        "import sys\nfrom evcap.cli import main\n"
+        "import sys\nfrom evcap.app.cli import main\n"
         f"main(['record', '--device', 'replay:{FIXTURES / 'color-scene'}', '-o', "
         f"'{tmp_path / 's.h5'}'])\n"
         "print([m for m in ('torch', 'pycolmap', 'kornia', 'gsplat') if m in sys.modules])"
@@ -476,3 +479,41 @@ def test_recordings_on_request_hold_contiguous_parts_of_the_stream(tmp_path, fix
             assert set(frames_t.tolist()) <= set(exp["frames_t"].tolist())
     with Session.open(paths[1]) as s:
         assert s.settings_log()[0][1:] == ("bias.OffBn", bias)
+
+
+def _is_end_reason(target: ast.expr) -> bool:
+    return isinstance(target, ast.Name | ast.Attribute) and (
+        getattr(target, "id", None) == "end_reason" or getattr(target, "attr", None) == "end_reason"
+    )
+
+
+def test_every_end_reason_is_typed():
+    """Every end reason the recorder sets is one of EndReason's, so none is added untyped."""
+    set_reasons = []
+    for node in ast.walk(ast.parse(inspect.getsource(recorder_module))):
+        pairs = []
+        if isinstance(node, ast.Assign):
+            for target in node.targets:
+                if isinstance(target, ast.Tuple) and isinstance(node.value, ast.Tuple):
+                    pairs += zip(target.elts, node.value.elts, strict=False)
+                else:
+                    pairs.append((target, node.value))
+        elif isinstance(node, ast.AnnAssign) and node.value is not None:
+            pairs.append((node.target, node.value))
+        elif (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Attribute)
+            and node.func.attr == "_close"
+            and node.args
+        ):
+            pairs.append((ast.Name("end_reason"), node.args[0]))
+        set_reasons += [
+            value.value
+            for target, value in pairs
+            if _is_end_reason(target)
+            and isinstance(value, ast.Constant)
+            and isinstance(value.value, str)
+        ]
+    assert {"stopped", "disk full", "camera lost", "write failed"} <= set(set_reasons)
+    assert set(set_reasons) <= set(END_REASONS)
+    assert set(NORMAL_ENDS) <= set(END_REASONS)

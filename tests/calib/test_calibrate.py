@@ -9,8 +9,8 @@ import h5py
 import numpy as np
 import pytest
 
+from evcap.app.cli import main
 from evcap.calib.calibrate import SKIPPABLE, calibrate, write_calibration
-from evcap.cli import main
 from evcap.errors import CalibrationError
 from evcap.records import Calibration
 from evcap.session import SensorInfo, Session, SessionWriter

@@ -286,7 +286,7 @@ def test_a_simulated_recording_as_an_ecd_sequence(tmp_path):
     groundtruth.txt (no frames), imported, then `evcap info` and `evcap poses` on it."""
     from evcap.acquire.device import Davis346
     from evcap.acquire.recorder import Recorder, RecordOptions
-    from evcap.demo import FIXTURES, SCENE
+    from evcap.app.demo import FIXTURES, SCENE
     from evcap.records import GroundTruth
 
     recorded = tmp_path / "recorded.h5"

@@ -7,7 +7,7 @@ import h5py
 import numpy as np
 import pytest
 
-from evcap.cli import main
+from evcap.app.cli import main
 from evcap.errors import InputError
 from evcap.poses.estimate import estimate_poses
 from evcap.records import Poses

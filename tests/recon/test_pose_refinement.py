@@ -10,8 +10,8 @@ from evcap.recon.gaussians import Background, Gaussians
 from evcap.recon.optics import RenderGrid
 from evcap.recon.pose_refinement import PoseCorrections, exp_so3
 from evcap.recon.radiance import RadianceField
-from evcap.recon.reconstruct import POSES_FILE, reconstruct
-from evcap.records import Poses
+from evcap.recon.reconstruct import reconstruct
+from evcap.records import Poses, ReconstructionFolder
 from evcap.rotations import exp_so3 as exp_so3_numpy
 from evcap.session import Session
 from evcap.sim.scene import load_scene
@@ -138,7 +138,7 @@ def test_reconstruct_refines_estimated_poses_and_writes_them(simulated, tmp_path
     out = tmp_path / "out"
     settings = {"iterations": 12, "pose_from": 0.0}
     result = reconstruct(session, out, preset="tiny", stage="radiance", radiance_settings=settings)
-    refined = Poses.read_file(out / POSES_FILE)
+    refined = Poses.read_file(ReconstructionFolder(out).poses)
     assert refined.source == "evcap reconstruct: refined (evcap poses (filter frames, pycolmap))"
     assert refined.start == truth.start and refined.end == truth.end
     assert 0 < refined.notes["refinement_max_deg"] < 5
@@ -157,7 +157,7 @@ def test_reconstruct_refines_estimated_poses_and_writes_them(simulated, tmp_path
         radiance_settings=settings,
         refine_poses="off",
     )
-    assert off.iterations == 12 and not (tmp_path / "off" / POSES_FILE).exists()
+    assert off.iterations == 12 and not (ReconstructionFolder(tmp_path / "off").poses).exists()
 
 
 def test_an_interrupted_refinement_goes_on_as_if_it_had_not_stopped(simulated, tmp_path):
@@ -179,8 +179,8 @@ def test_an_interrupted_refinement_goes_on_as_if_it_had_not_stopped(simulated, t
     assert first.interrupted and first.iterations == 25
     again = reconstruct(session, tmp_path / "cut", **run)
     assert again.iterations == whole.iterations == 40
-    expected = Poses.read_file(tmp_path / "whole" / POSES_FILE)
-    got = Poses.read_file(tmp_path / "cut" / POSES_FILE)
+    expected = Poses.read_file(ReconstructionFolder(tmp_path / "whole").poses)
+    got = Poses.read_file(ReconstructionFolder(tmp_path / "cut").poses)
     assert expected.notes["refinement_max_deg"] > 0
     np.testing.assert_allclose(got.T_world_cam, expected.T_world_cam, atol=1e-9)
     with Session.open(session) as s:

@@ -10,7 +10,8 @@ import torch
 
 from evcap.errors import InputError
 from evcap.recon.reconstruct import reconstruct
-from evcap.recon.resume import state_path, stop_after_step
+from evcap.recon.resume import stop_after_step
+from evcap.records import ReconstructionFolder
 from evcap.sim.scene import load_scene
 from evcap.sim.simulate import simulate
 
@@ -54,7 +55,7 @@ def test_stage_one_goes_on_from_where_it_stopped(session, uninterrupted, tmp_pat
     # step 40: before the densification at step 50, which then uses the gradients seen before
     first = reconstruct(session, tmp_path, **RUN, progress=interrupt_at(40, "radiance"))
     assert first.interrupted and first.iterations == 40
-    assert state_path(tmp_path, "radiance").exists()
+    assert ReconstructionFolder(tmp_path).training_state("radiance").exists()
     assert first.material_iterations is None  # stage II did not start
     said = []
     result = reconstruct(session, tmp_path, **RUN, say=said.append)
@@ -69,7 +70,7 @@ def test_stage_one_goes_on_from_where_it_stopped(session, uninterrupted, tmp_pat
     # the training log goes on too: the rows before the interruption, then the rest
     steps = [x["step"] for x in result.training_log["radiance"]]
     assert steps == [x["step"] for x in expected.training_log["radiance"]]
-    assert not state_path(tmp_path, "radiance").exists()
+    assert not ReconstructionFolder(tmp_path).training_state("radiance").exists()
     with pytest.raises(InputError, match="already holds"):  # finished: nothing to go on with
         reconstruct(session, tmp_path, **RUN)
 
@@ -100,7 +101,7 @@ def test_a_stage_two_state_that_does_not_fit_is_refused_by_name(session, uninter
     shutil.copy(whole / "checkpoint" / "radiance.pt", tmp_path / "checkpoint" / "radiance.pt")
     run = {**RUN, "stage": "material", "visibility": "on"}
     reconstruct(session, tmp_path, **run, progress=interrupt_at(3, "material"))
-    path = state_path(tmp_path, "material")
+    path = ReconstructionFolder(tmp_path).training_state("material")
     state = torch.load(path, weights_only=True)
     state["material"]["visibility_sh"] = state["material"].pop("visibility")
     torch.save(state, path)
@@ -112,7 +113,7 @@ def test_other_settings_are_refused_or_started_over(session, tmp_path):
     reconstruct(session, tmp_path, **RUN, stage="radiance", progress=interrupt_at(20, "radiance"))
     with pytest.raises(InputError, match="interrupted in stage I with another session or other"):
         reconstruct(session, tmp_path, **RUN, stage="radiance", seed=1)
-    assert state_path(tmp_path, "radiance").exists()  # the refusal kept it
+    assert ReconstructionFolder(tmp_path).training_state("radiance").exists()  # the refusal kept it
     said = []
     result = reconstruct(
         session, tmp_path, **RUN, stage="radiance", seed=1, overwrite=True, say=said.append
@@ -128,7 +129,10 @@ def test_a_step_cut_in_two_is_not_saved(session, tmp_path, monkeypatch):
 
     monkeypatch.setattr(densify.Densifier, "densify", cut)
     result = reconstruct(session, tmp_path, **RUN, stage="radiance")
-    assert result.interrupted and not state_path(tmp_path, "radiance").exists()
+    assert (
+        result.interrupted
+        and not ReconstructionFolder(tmp_path).training_state("radiance").exists()
+    )
 
 
 def test_ctrl_c_asks_to_stop_and_a_second_one_interrupts():

@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from evcap.errors import InputError
-from evcap.records import Figures, GroundTruth, ReconstructionResult, TruthViews
+from evcap.records import (
+    Figures,
+    GroundTruth,
+    ReconstructionFolder,
+    ReconstructionResult,
+    TruthViews,
+)
 
 H, W = 6, 8
 
@@ -85,10 +91,10 @@ def test_result_round_trip(tmp_path):
         effects={"visibility": True},
         training_log={"radiance": [{"step": 0, "loss": 1.0}]},
     )
-    result.write(tmp_path)
+    ReconstructionFolder(tmp_path).write_result(result)
     data = json.loads((tmp_path / "metrics.json").read_text())
     assert data["object_psnr_cc"] == 21.5 and data["normal_mae_deg"] is None
-    back = ReconstructionResult.read(tmp_path)
+    back = ReconstructionFolder(tmp_path).read_result()
     assert back.figures.object_psnr_cc == 21.5 and math.isnan(back.figures.normal_mae_deg)
     assert back.figures.depth_rel_err is None
     assert back.iterations == 100 and back.training_log == result.training_log
@@ -106,4 +112,4 @@ def test_a_damaged_result_is_named(tmp_path, text, message):
     if text is not None:
         (tmp_path / "metrics.json").write_text(text)
     with pytest.raises(InputError, match=message):
-        ReconstructionResult.read(tmp_path)
+        ReconstructionFolder(tmp_path).read_result()

@@ -1,0 +1,450 @@
+"""The commands of the steps' floor, one step each: simulate, calibrate, poses, reconstruct,
+report."""
+
+from __future__ import annotations
+
+import argparse
+
+from evcap.app.command import Command
+from evcap.errors import InputError
+
+# light: the reconstruction's names and choices, without torch
+from evcap.recon.config import (
+    ABLATION_FLAGS,
+    BACKENDS,
+    DEVICES,
+    EFFECT_MODES,
+    PRESET_NAMES,
+    REFINE_POSES,
+    STAGES,
+    ZERO_EVENTS,
+)
+
+
+def _simulate_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "scene",
+        nargs="?",
+        help="the scene file (.toml), or the name of an example scene that ships with evcap "
+        "(single_object, multi_object, charuco_board, noisy_sensor, demo_orbit, demo_calibration)",
+    )
+    p.add_argument("-o", "--output", required=True, help="the session file to write (.h5)")
+    p.add_argument("--fixture", metavar="DIR", help="also write a hardware-replay fixture")
+    p.add_argument("--seed", type=int, help="random seed (default: the scene's)")
+    p.add_argument(
+        "--from-images",
+        metavar="TRANSFORMS",
+        help="a NeRF-style transforms.json: events from its posed images, in their order",
+    )
+    p.add_argument(
+        "--held-out",
+        metavar="TRANSFORMS",
+        help="--from-images: a second transforms file whose views are the held-out views "
+        "(never used for events); default: every 8th view of the path",
+    )
+    p.add_argument(
+        "--background",
+        type=float,
+        default=1.0,
+        help="--from-images: the gray level (linear, 0-1) RGBA images are composited over "
+        "(default 1: white, the NeRF-Synthetic convention)",
+    )
+    p.add_argument("--fps", type=float, default=30.0, help="--from-images: images per second")
+    p.add_argument(
+        "--color-filter",
+        default="RGBG",
+        choices=["RGBG", "MONO"],
+        help="--from-images: the simulated sensor's filter",
+    )
+    p.add_argument("--threshold", type=float, default=0.2, help="--from-images: contrast threshold")
+    p.add_argument(
+        "--scale", type=float, default=1.0, help="--from-images: resize the images by this factor"
+    )
+    p.add_argument("-f", "--force", action="store_true", help="overwrite the output file")
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    from evcap._progress import progress_bar
+
+    if (args.scene is None) == (args.from_images is None):
+        raise InputError("give a scene file, or --from-images TRANSFORMS (not both)")
+    if args.held_out and not args.from_images:
+        raise InputError("--held-out goes with --from-images")
+    if args.from_images:
+        from evcap.sim.from_images import simulate_from_images
+
+        with progress_bar("simulating") as update:
+            n = simulate_from_images(
+                args.from_images,
+                args.output,
+                held_out=args.held_out,
+                background=args.background,
+                fps=args.fps,
+                color_filter=args.color_filter,
+                threshold=args.threshold,
+                scale=args.scale,
+                seed=args.seed or 0,
+                overwrite=args.force,
+                progress=update,
+            )
+        print(f"{args.output}: {n:,} events from {args.from_images}")
+        return 0
+    from evcap.sim.scene import example_scene, load_scene
+    from evcap.sim.simulate import simulate
+
+    scene = load_scene(example_scene(args.scene))
+    with progress_bar(f"simulating {scene.name}") as update:
+        stats = simulate(
+            scene,
+            args.output,
+            seed=args.seed,
+            overwrite=args.force,
+            fixture=args.fixture,
+            progress=update,
+        )
+    print(
+        f"{args.output}: {stats.events:,} events, {stats.frames:,} frames, {stats.imu:,} IMU "
+        f"samples ({stats.key_renders:,} renders, {sum(stats.seconds.values()):.1f} s)"
+    )
+    if args.fixture:
+        print(
+            f"{args.fixture}: hardware-replay fixture (evcap record --device replay:{args.fixture})"
+        )
+    return 0
+
+
+SIMULATE = Command(
+    "simulate",
+    help="simulate a color event camera in a scene, with ground truth",
+    description="Simulate a scene (TOML, see sim/scenes/README.md) into a session with its "
+    "ground truth (/gt), poses and calibration; or events from posed images.",
+    arguments=_simulate_arguments,
+    run=_simulate,
+)
+
+
+def _calibrate_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("session", nargs="?", help="the session file (.h5) to calibrate")
+    p.add_argument(
+        "--board",
+        metavar="charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT",
+        help="the ChArUco board filmed (default: the board of --print-board, "
+        "charuco:7x5:0.04:0.03:DICT_4X4_50)",
+    )
+    p.add_argument(
+        "--apply-to",
+        nargs="+",
+        metavar="S2",
+        help="also write the calibration to these sessions (same camera and biases)",
+    )
+    p.add_argument(
+        "--skip",
+        action="append",
+        choices=["intrinsics", "thresholds"],
+        help="do not measure this part; keep what the session holds (repeatable)",
+    )
+    p.add_argument("--report", metavar="OUT.png", help="write maps of the calibration")
+    p.add_argument("--print-board", metavar="OUT.png", help="write the board as an image to print")
+    p.add_argument("--dpi", type=int, default=300, help="--print-board's resolution")
+
+
+def _calibrate(args: argparse.Namespace) -> int:
+    from evcap.calib.board import DEFAULT_BOARD, parse_board, write_board_image
+
+    board = parse_board(args.board) if args.board else DEFAULT_BOARD
+    if args.print_board:
+        width_mm, height_mm = write_board_image(board, args.print_board, dpi=args.dpi)
+        print(
+            f"{args.print_board}: {board.describe()}; print at 100 % ({args.dpi} dpi): "
+            f"{width_mm:.0f} x {height_mm:.0f} mm"
+        )
+        if args.session is None:
+            return 0
+    if args.session is None:
+        raise InputError("give the session to calibrate (or only --print-board OUT.png)")
+    from evcap._progress import progress_bar
+    from evcap.calib.calibrate import calibrate, check_targets, write_calibration
+
+    targets = [args.session, *(args.apply_to or ())]
+    check_targets(targets)  # before minutes of work
+    with progress_bar("calibrating") as update:
+        cal = calibrate(
+            args.session,
+            board=board,
+            skip=frozenset(args.skip or ()),
+            say=print,
+            progress=update,
+        )
+    write_calibration(targets, cal)
+    print(cal.summary())
+    print(f"written to /calibration of {', '.join(str(p) for p in targets)}")
+    if args.report:
+        from evcap.calib.report import write_report
+
+        write_report(cal, args.report)
+        print(f"{args.report}: maps of the thresholds, hot pixels and reprojection errors")
+    return 0
+
+
+CALIBRATE = Command(
+    "calibrate",
+    help="measure the sensor: intrinsics, thresholds, hot pixels, noise",
+    description="Measure what a recording allows about its sensor and write it to the "
+    "session's /calibration: intrinsics and distortion from a ChArUco board in the APS "
+    "frames (or in frames made from the events when there are none), per-pixel ON and OFF "
+    "contrast thresholds from the APS frames against the events, hot pixels, the "
+    "background activity and shot noise rates, and the refractory period.",
+    arguments=_calibrate_arguments,
+    run=_calibrate,
+)
+
+
+def _poses_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("session", help="the session file (.h5), with /calibration")
+    p.add_argument(
+        "--frames",
+        default="filter",
+        choices=["filter", "timesurface", "e2vid", "firenet"],
+        help="filter: a per-pixel high-pass filter, no weights (default); timesurface: a "
+        "decayed time surface of either polarity, which keeps its look when the motion reverses "
+        "(more frames register, less accurate: docs/poses.md); e2vid, firenet: the recurrent "
+        "networks, from --weights",
+    )
+    p.add_argument(
+        "--weights",
+        metavar="FILE",
+        help="the network's checkpoint (e.g. E2VID_lightweight.pth.tar); read as weights only",
+    )
+    p.add_argument(
+        "--rate", type=float, metavar="HZ", help="frames per second (default: from the event rate)"
+    )
+    p.add_argument("--export-frames", metavar="DIR", help="also write the frames as PNG files")
+    p.add_argument(
+        "--aps",
+        default="auto",
+        choices=["auto", "on", "off"],
+        help="whether the filter's frames lean on the APS frames (a complementary filter); auto "
+        "(default): when the camera turns at most 2 deg between two of them (by the IMU; "
+        "without it, when they come at 20 Hz or more)",
+    )
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        metavar="N",
+        help="structure from motion's threads (default 1: the same session gives the same "
+        "poses bit for bit; more are faster, but COLMAP then varies a little from run to run; "
+        "0: every core)",
+    )
+    p.add_argument(
+        "--no-gyro",
+        action="store_true",
+        help="keep structure from motion's orientations (by default, when the session has IMU "
+        "samples, the orientations are the gyroscope's, tied to the frames' by one rotation and "
+        "the gyroscope's bias, and the positions are adjusted to them)",
+    )
+    p.add_argument(
+        "--no-gravity",
+        action="store_true",
+        help="leave the world's orientation as structure from motion gives it (by default it "
+        "is turned so that z is up when the session has IMU samples)",
+    )
+
+
+def _poses(args: argparse.Namespace) -> int:
+    from evcap._progress import progress_bar
+    from evcap.poses.estimate import estimate_poses, write_poses
+
+    with progress_bar("poses") as update:
+        result = estimate_poses(
+            args.session,
+            kind=args.frames,
+            weights=args.weights,
+            rate_hz=args.rate,
+            export_frames=args.export_frames,
+            gravity=not args.no_gravity,
+            gyro=not args.no_gyro,
+            aps={"auto": None, "on": True, "off": False}[args.aps],
+            threads=args.threads,
+            say=print,
+            progress=update,
+        )
+    write_poses(args.session, result)
+    print(result.summary())
+    print(f"written to /poses of {args.session} ({result.seconds:.0f} s of structure from motion)")
+    return 0
+
+
+POSES = Command(
+    "poses",
+    help="estimate the camera's path from the events",
+    description="Make intensity frames from the session's events, register them by "
+    "structure from motion (pycolmap) with the calibrated intrinsics fixed, and write "
+    "the camera-to-world transforms to /poses (replacing what was there; scale arbitrary).",
+    arguments=_poses_arguments,
+    run=_poses,
+)
+
+
+def _reconstruct_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("session", help="the session file (.h5), with /calibration and /poses")
+    p.add_argument("-o", "--output", required=True, metavar="OUT", help="the folder to write")
+    p.add_argument(
+        "--stage",
+        default="all",
+        choices=STAGES,
+        help="radiance: stage I (geometry, radiance); material: stage II (base color, "
+        "roughness, normals, light) from OUT's stage-I checkpoint; all: both (default)",
+    )
+    p.add_argument(
+        "--preset",
+        default="fast",
+        choices=PRESET_NAMES,
+        help="tiny: a smoke test; small: a minute or two on a CPU (`evcap demo`'s); fast: "
+        "minutes on a laptop CPU (default); paper: the method's reference run, for a GPU",
+    )
+    p.add_argument("--device", default="cpu", choices=DEVICES, help="default: cpu")
+    p.add_argument(
+        "--backend",
+        choices=BACKENDS,
+        help="the rasterizer: cpu (compiled, the default on the CPU), torch (the pure-PyTorch "
+        "reference, any device), gsplat (CUDA; the default on cuda when it is installed)",
+    )
+    p.add_argument(
+        "--resolution", type=float, metavar="R", help="render scale relative to the sensor"
+    )
+    p.add_argument("--iterations", type=int, metavar="N", help="stage I steps")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument(
+        "--zero-events",
+        choices=ZERO_EVENTS,
+        help="a pixel without events means no change (target) or |change| < C (bound)",
+    )
+    p.add_argument("--material-iterations", type=int, metavar="N", help="stage II steps")
+    for effect, what in (("visibility", "shadows"), ("indirect", "light from other surfaces")):
+        p.add_argument(
+            f"--{effect}",
+            choices=EFFECT_MODES,
+            help=f"model {what} (default auto: when the scene has occluders)",
+        )
+    p.add_argument(
+        "--without",
+        action="append",
+        choices=[*ABLATION_FLAGS, "visibility", "indirect"],
+        help="leave a term of stage II out (the method's ablations); repeatable",
+    )
+    p.add_argument(
+        "--relight",
+        metavar="ENV",
+        help="also render the views under this environment (latitude-longitude image, z up)",
+    )
+    p.add_argument(
+        "--refine-poses",
+        default="auto",
+        choices=REFINE_POSES,
+        help="stage I corrects the camera's path with the events and writes it to "
+        "OUT/poses.h5 (default auto: when `evcap poses` estimated it)",
+    )
+    p.add_argument(
+        "--write-poses",
+        action="store_true",
+        help="also replace the session's /poses with the refined path",
+    )
+    p.add_argument(
+        "-f",
+        "--force",
+        action="store_true",
+        help="start over: replace the reconstruction in OUT, finished or interrupted",
+    )
+
+
+def _reconstruct(args: argparse.Namespace) -> int:
+    from evcap._progress import progress_bar
+    from evcap.recon.reconstruct import reconstruct
+
+    without = set(args.without or ())
+    with progress_bar(f"reconstructing ({args.preset})") as update:
+        result = reconstruct(
+            args.session,
+            args.output,
+            preset=args.preset,
+            stage=args.stage,
+            device=args.device,
+            backend=args.backend,
+            resolution=args.resolution,
+            iterations=args.iterations,
+            material_iterations=args.material_iterations,
+            seed=args.seed,
+            zero_events=args.zero_events,
+            visibility="off" if "visibility" in without else args.visibility,
+            indirect="off" if "indirect" in without else args.indirect,
+            ablate=tuple(ABLATION_FLAGS[w] for w in sorted(without) if w in ABLATION_FLAGS),
+            relight=args.relight,
+            refine_poses=args.refine_poses,
+            write_poses=args.write_poses,
+            overwrite=args.force,
+            resume=not args.force,
+            say=print,
+            progress=update,
+        )
+    stopped = ""
+    if result.interrupted:
+        stopped = " (interrupted: what was learnt so far; the same command goes on from there)"
+    if args.stage != "material":
+        print(
+            f"{args.output}: {result.gaussians:,} Gaussians after {result.iterations:,} "
+            f"steps in {result.seconds:.0f} s on {result.device}{stopped}"
+        )
+    if result.has_material:
+        on = [k for k, v in (result.effects or {}).items() if v]
+        print(
+            f"{args.output}: material after {result.material_iterations:,} steps in "
+            f"{result.material_seconds:.0f} s (with {', '.join(on) or 'nothing else'}){stopped}"
+        )
+    figures = "  ".join(f"{k} {v:.3f}" for k, v in result.figures.shown().items())
+    if figures:
+        print(f"held-out views: {figures}")
+    return 0
+
+
+RECONSTRUCT = Command(
+    "reconstruct",
+    help="recover the scene from a session's events, as 3D Gaussians",
+    description="Fit 3D Gaussians to a session's events (its calibration and poses are "
+    "used), then their material and the light, and write OUT/gaussians.ply, OUT/renders/ "
+    "(radiance, depth, normals; material/: base color, roughness, shading normals), "
+    "OUT/environment.png, OUT/checkpoint/, OUT/config.toml and OUT/metrics.json (with the "
+    "ground truth of a simulated session). Ctrl-C stops at the end of the current step and "
+    "writes what was learnt so far; the same command then goes on from that step (the "
+    "training's state is also saved every 2 minutes).",
+    arguments=_reconstruct_arguments,
+    run=_reconstruct,
+)
+
+
+def _report_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("output", metavar="OUT", help="a folder made by `evcap reconstruct`")
+    p.add_argument("--session", help="the session (default: the one OUT was made from)")
+
+
+def _report(args: argparse.Namespace) -> int:
+    from evcap.report.html import write_report
+
+    page = write_report(args.output, args.session)
+    print(f"{page}: open it in a browser (self-contained, no network needed)")
+    return 0
+
+
+REPORT = Command(
+    "report",
+    help="one self-contained HTML page of a reconstruction",
+    description="Write OUT/report.html: the session's summary, its calibration maps, the "
+    "trajectory, the event edge maps, the recovered maps beside the truth where there is "
+    "one, relit views, the metrics and the accuracy-versus-time plot. Images are embedded: "
+    "it opens without a network.",
+    arguments=_report_arguments,
+    run=_report,
+)
+
+# in the order `evcap --help` lists them
+COMMANDS = (SIMULATE, CALIBRATE, POSES, RECONSTRUCT, REPORT)

@@ -1,0 +1,177 @@
+"""`evcap demo`: the whole of evcap on a bundled capture, with no camera.
+
+Two hardware-replay fixtures (app/demo_data/demo-scene and demo-calibration, made by the
+simulator) are recorded through the real driver, then the pipeline runs on the scene's: the
+calibration recording calibrates it, the poses come from its events, they are registered to the
+simulator's truth (so that the held-out views are scored), the reconstruction runs both stages
+and the report shows it all. Each step is saved as it ends, so a second run goes on from the
+first step not yet done.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from evcap.app.pipeline import Pipeline, Progress, Settings, StepDefinition, Workspace
+from evcap.errors import InputError, OutputExistsError
+from evcap.recon.config import Preset
+
+FIXTURES = Path(__file__).resolve().parent / "demo_data"  # package data: in the wheel too
+SCENE, CALIBRATION = "demo-scene", "demo-calibration"
+PRESETS: tuple[Preset, ...] = ("small", "fast")  # recon's presets that a CPU runs in minutes
+RELIGHT = "relight.png"  # the new light the demo's views are also lit by
+
+
+def demo_workspace(out: str | Path) -> Workspace:
+    """DIR/scene.h5 (the scene's recording, the pipeline's session), DIR/calibration.h5."""
+    out = Path(out)
+    return Workspace(out, "scene.h5", calibration=out / "calibration.h5")
+
+
+def demo_pipeline(
+    out: str | Path,
+    *,
+    preset: Preset = "small",
+    fixtures: str | Path | None = None,
+    say: Callable[[str], None] = print,
+    progress: Progress | None = None,
+) -> Pipeline:
+    """The pipeline with the demo's steps: recording the two captures, first; registering the
+    estimated poses to the truth, after the poses."""
+    ws = demo_workspace(out)
+    fixtures = Path(fixtures) if fixtures is not None else FIXTURES
+    settings = Settings(preset=preset, relight=RELIGHT)
+    pipeline = Pipeline(
+        ws, settings, say=say, progress=progress, hint="pass --force to start the demo over"
+    )
+    assert ws.calibration is not None
+    for fixture, path in ((CALIBRATION, ws.calibration), (SCENE, ws.session)):
+        pipeline.add(
+            StepDefinition(
+                f"record {path.name} (replayed through the driver)",
+                lambda f=fixture, p=path: _record(fixtures / f, p),
+                path.exists,
+            ),
+            before="calibrate",
+        )
+    pipeline.add(
+        StepDefinition(
+            "register the poses to the simulator's truth",
+            lambda: _register(fixtures / SCENE / "truth.h5", ws.session),
+            ws.session.exists,
+        ),
+        before="reconstruct",
+    )
+    return pipeline
+
+
+def run_demo(
+    out: str | Path,
+    *,
+    preset: Preset = "small",
+    fixtures: str | Path | None = None,
+    force: bool = False,
+    say: Callable[[str], None] = print,
+    progress: Progress | None = None,
+) -> Path:
+    """Run (or go on with) the demo into ``out``; returns the report's path."""
+    from evcap._progress import progress_bar
+
+    if preset not in PRESETS:
+        raise InputError(f"unknown preset {preset!r}; expected one of {', '.join(PRESETS)}")
+    fixtures = Path(fixtures) if fixtures is not None else FIXTURES
+    for name in (SCENE, CALIBRATION):
+        if not (fixtures / name / "bulk.bin").exists():
+            raise InputError(
+                f"the demo's capture {fixtures / name} is missing: it ships with evcap "
+                "(app/demo_data/); reinstall evcap, or name the folder with --fixtures"
+            )
+    ws = demo_workspace(out)
+    _prepare(ws, force)
+    pipeline = demo_pipeline(
+        out, preset=preset, fixtures=fixtures, say=say, progress=progress or progress_bar
+    )
+    if not (ws.root / RELIGHT).exists():
+        write_relight_environment(ws.root / RELIGHT)
+    started = time.perf_counter()
+    pipeline.run()
+    say(f"the demo took {time.perf_counter() - started:.0f} s here; open {ws.report}")
+    return ws.report
+
+
+def _prepare(ws: Workspace, force: bool) -> None:
+    """The demo's folder: made, or one that holds a demo (started over with ``force``); never
+    a folder of something else."""
+    holds_demo = ws.state.exists()
+    if force and ws.root.exists():
+        if not holds_demo and any(ws.root.iterdir()):
+            raise OutputExistsError(
+                f"{ws.root} is not empty and holds no demo: --force only starts a demo folder over"
+            )
+        shutil.rmtree(ws.root)
+        holds_demo = False
+    if not holds_demo and ws.root.exists() and any(ws.root.iterdir()):
+        raise OutputExistsError(f"{ws.root} is not empty and holds no demo; choose another -o")
+    ws.root.mkdir(parents=True, exist_ok=True)
+
+
+def _record(fixture: Path, path: Path) -> str:
+    from evcap.acquire.device import Davis346
+    from evcap.acquire.recorder import Recorder, RecordOptions
+
+    with Davis346.open(f"replay:{fixture}") as camera:
+        recorder = Recorder(camera, path, RecordOptions(overwrite=True))
+        r = recorder.run()
+    if r.end_reason != "end of replay":
+        raise InputError(f"recording {fixture.name} ended early ({r.end_reason}: {r.error})")
+    return f"{r.events:,} events, {r.frames:,} frames, {r.imu:,} IMU samples into {path.name}"
+
+
+def _register(truth_file: Path, session: Path) -> str:
+    """Bring the simulator's truth into the session and the estimated poses onto it (a
+    similarity), so that the reconstruction is measured against the true held-out views. Only
+    the evaluation uses the truth: the poses were estimated from the events alone."""
+    from evcap.records import GroundTruth, Poses
+    from evcap.session import Session
+    from evcap.sim.truth import copy_truth
+    from evcap.trajectory_alignment import apply_similarity, pose_errors
+
+    copy_truth(truth_file, session, replace=True)
+    with Session.open(session) as s:
+        poses = Poses.read(s)
+        truth = GroundTruth.read(s).poses()
+    t = poses.t
+    inside = (t >= truth.start) & (t <= truth.end)
+    errors = pose_errors(poses.T_world_cam[inside], truth.at(t[inside]), by="poses")
+    scale, R, shift = errors["scale"], errors["R"], errors["t"]
+    poses.replace(
+        T_world_cam=apply_similarity(poses.T_world_cam, scale, R, shift),
+        points_xyz=None if poses.points_xyz is None else scale * poses.points_xyz @ R.T + shift,
+        scale="metric: registered to the simulator's truth by a similarity",
+        notes={
+            "rotation_median_deg": errors["rotation_median_deg"],
+            "translation_median_pct": errors["translation_median_pct"],
+        },
+    ).write(session)
+    return (
+        f"against the truth: rotation {errors['rotation_median_deg']:.2f} deg, translation "
+        f"{errors['translation_median_pct']:.2f} % of the path (medians)"
+    )
+
+
+def write_relight_environment(path: Path, height: int = 64) -> None:
+    """A latitude-longitude sky for the relit views: a low warm sun over a dim blue sky
+    (z up), unlike the scene's own light."""
+    from evcap.recon.export import write_image
+
+    elevation = (0.5 - (np.arange(height) + 0.5) / height)[:, None] * np.pi
+    azimuth = ((np.arange(2 * height) + 0.5) / height)[None, :] * np.pi
+    to_sun = np.cos(elevation) * np.cos(azimuth) * np.cos(0.3) + np.sin(elevation) * np.sin(0.3)
+    glow = np.clip(to_sun, 0, 1) ** 64
+    sky = np.where(elevation[..., None] > 0, [0.25, 0.35, 0.6], [0.15, 0.12, 0.1])
+    write_image(np.clip(sky + glow[..., None] * [1.0, 0.7, 0.4], 0, 1), path)
