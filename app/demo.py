@@ -25,6 +25,7 @@ FIXTURES = Path(__file__).resolve().parent / "demo_data"  # package data: in the
 SCENE, CALIBRATION = "demo-scene", "demo-calibration"
 PRESETS: tuple[Preset, ...] = ("small", "fast")  # recon's presets that a CPU runs in minutes
 RELIGHT = "relight.png"  # the new light the demo's views are also lit by
+EARLIER_STATE = "demo.json"  # the state file of the demo before it ran on the pipeline
 
 
 def demo_workspace(out: str | Path) -> Workspace:
@@ -107,7 +108,12 @@ def run_demo(
 def _prepare(ws: Workspace, force: bool) -> None:
     """The demo's folder: made, or one that holds a demo (started over with ``force``); never
     a folder of something else."""
-    holds_demo = ws.state.exists()
+    earlier = (ws.root / EARLIER_STATE).exists()
+    holds_demo = ws.state.exists() or earlier
+    if earlier and not force:
+        raise InputError(
+            f"{ws.root} holds a demo made by an earlier evcap; pass --force to start it over"
+        )
     if force and ws.root.exists():
         if not holds_demo and any(ws.root.iterdir()):
             raise OutputExistsError(

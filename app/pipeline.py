@@ -20,17 +20,21 @@ import traceback
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal, get_args
+from typing import TYPE_CHECKING, Literal, get_args
 
 from evcap.atomic_write import atomic_path, write_text_atomic
 from evcap.errors import InputError
 from evcap.recon.config import Device, Preset
-from evcap.records import Figures, ReconstructionFolder
+
+if TYPE_CHECKING:  # the records (numpy, h5py) wait for a step: `evcap --help` stays quick
+    from evcap.records import ReconstructionFolder
 
 Step = Literal["calibrate", "poses", "reconstruct", "report"]
 STEPS: tuple[Step, ...] = get_args(Step)
 Status = Literal["done", "done before", "failed", "not run", "stopped"]
 STATE = "pipeline.json"
+# how a user names the held settings (a batch's board is its manifest's)
+OPTIONS = {"preset": "--preset", "device": "--device", "seed": "--seed", "relight": "--relight"}
 
 # what a step's work returns: its one-line summary (None: it was stopped and kept what it had),
 # or the summary and its figures
@@ -79,6 +83,8 @@ class Workspace:
 
     @property
     def reconstruction(self) -> ReconstructionFolder:
+        from evcap.records import ReconstructionFolder
+
         return ReconstructionFolder(self.root / "reconstruction")
 
     @property
@@ -161,6 +167,8 @@ class Pipeline:
         """Run (or go on with) the named steps, all by default, in order, saying how each went;
         a step's error is raised, Ctrl-C as PipelineInterrupted."""
         chosen = [s for s in self.steps if names is None or s.name in names]
+        if not self.workspace.state.exists():  # the folder is this pipeline's from now on
+            self._write_state({})
         results = []
         for i, step in enumerate(chosen, 1):
             head = f"[{i}/{len(chosen)}] {step.name}"
@@ -236,10 +244,9 @@ class Pipeline:
         except (ValueError, KeyError, TypeError):
             raise InputError(f"{path} is damaged; {self.hint}") from None
         if held != self.settings.held():
+            now = self.settings.held()
             other = ", ".join(
-                f"--{k.replace('_', '-')} {v}"
-                for k, v in held.items()
-                if v != self.settings.held().get(k)
+                f"{OPTIONS.get(k, k)} {v}" for k, v in held.items() if v != now.get(k)
             )
             raise InputError(
                 f"{self.workspace.root} holds a run made with {other}; choose another output "
@@ -358,6 +365,8 @@ class Pipeline:
 
 def figures_line(figures: dict[str, float]) -> str:
     """Figures (by name) as one line: each one's readable name, value and unit."""
+    from evcap.records import Figures
+
     parts = []
     for key, value in figures.items():
         name, unit, _ = Figures.describe(key)

@@ -490,11 +490,11 @@ def _maps_section(folder: ReconstructionFolder, s: Session) -> str:
     if not stages:
         pngs = folder.rendered_images()
         if not pngs:
-            return notes + _missing("There are no rendered views (none was written, or kept).")
+            return notes + _missing("There are no rendered views (renders/ is missing or empty).")
         figures = [_figure(file_data_uri(p), escape(p.name), VIEW_PX) for p in pngs[:24]]
         return (
             notes
-            + _missing("No readable values of the views: the PNGs as they were written.")
+            + _missing("No readable renders/*.npz: the PNGs as they were written.")
             + ("".join(figures))
         )
     kind = stages[0][1]

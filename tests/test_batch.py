@@ -201,17 +201,17 @@ def test_a_groups_calibration_is_applied_to_its_recordings(collection, tmp_path)
 def test_ctrl_c_stops_cleanly_and_the_same_command_goes_on(
     collection, in_process, tmp_path, monkeypatch
 ):
-    from evcap.batch import steps
+    from evcap.app.pipeline import Pipeline
     from evcap.batch.run import BatchInterrupted
 
     out = tmp_path / "stopped"
     shutil.copytree(in_process, out)
     (out / "left" / "report.html").unlink()  # its report is made again, and Ctrl-C comes
 
-    def interrupted(job):
+    def interrupted(pipeline):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(steps, "_report", interrupted)
+    monkeypatch.setattr(Pipeline, "_report", interrupted)
     with pytest.raises(BatchInterrupted, match="run the same command"):
         run_batch(read_manifest(collection), out, steps=STEPS, preset="tiny", use_ray=False)
     left = summary(out)["left"]

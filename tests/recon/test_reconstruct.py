@@ -458,3 +458,26 @@ def test_gaussians_start_on_the_poses_points_when_asked(color_session, tmp_path)
     assert not np.isin(random, on.astype(np.float32)).all(axis=1).any()
     with pytest.raises(InputError, match="init_on_points"):
         cfg.preset("tiny", init_on_points=1.5)
+
+
+# every preset runs at a tiny size in the default run: tiny in most tests here, paper above,
+# small (the demo's) in tests/test_demo.py at 150 steps, fast here
+RUN_ELSEWHERE = {"tiny", "paper", "small"}
+
+
+@pytest.mark.parametrize("preset", sorted(set(cfg.PRESET_NAMES) - RUN_ELSEWHERE))
+def test_a_preset_runs_both_stages_at_a_tiny_size(color_session, tmp_path, preset):
+    result = reconstruct(
+        color_session,
+        tmp_path / preset,
+        preset=preset,
+        iterations=6,
+        material_iterations=2,
+        resolution=0.25,
+    )
+    assert result.preset == preset and result.iterations == 6
+    assert result.material_iterations == 2 and not result.interrupted
+
+
+def test_every_preset_has_a_tiny_run():
+    assert set(cfg.PRESET_NAMES) >= RUN_ELSEWHERE
