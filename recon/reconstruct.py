@@ -163,6 +163,7 @@ def reconstruct(
     if set(ablate) - set(ABLATIONS):
         raise InputError(f"unknown ablation(s) {sorted(set(ablate) - set(ABLATIONS))}")
     runs = _trainings(stage)
+    fits_radiance, fits_material = "radiance" in runs, "material" in runs
     out = ReconstructionFolder(out)
     mconfig = cfg.material_preset(
         preset, iterations=material_iterations, visibility=visibility, indirect=indirect
@@ -170,7 +171,7 @@ def reconstruct(
     environment = read_environment(relight) if relight is not None else None
     device = pick_device(device)
     backend = pick_backend(backend, device)
-    if "radiance" not in runs:
+    if not fits_radiance:
         field, settings = load_checkpoint(out.checkpoint("radiance"), device, backend)
         config = cfg.RadianceConfig(**settings)
     else:
@@ -180,7 +181,7 @@ def reconstruct(
         config = cfg.preset(preset, **overrides)
     started = time.perf_counter()
     with Session.open(session_path) as session:
-        if "radiance" in runs and Poses.present(session):  # else a clear error comes below
+        if fits_radiance and Poses.present(session):  # else a clear error comes below
             refines = _refines(refine_poses, Poses.read(session))
             config = dataclasses.replace(config, refine_poses=refines)
         session_id = resume_.session_fingerprint(session)
@@ -193,10 +194,10 @@ def reconstruct(
             "ablate": sorted(ablate),
         }
         states = _saved_states(out, runs, settings, resume, overwrite)
-        if "radiance" in runs and states["radiance"] is None and states["material"] is not None:
+        if fits_radiance and states["radiance"] is None and states["material"] is not None:
             field, _ = load_checkpoint(out.checkpoint("radiance"), device, backend)
         data = load_training_data(session, config, device)
-        if "radiance" not in runs and out.poses.exists():  # stage I refined them
+        if not fits_radiance and out.poses.exists():  # stage I refined them
             data.track = Poses.read_file(out.poses)
         gt = GroundTruth.read(session) if GroundTruth.present(session) else None
         truth = gt.held_out_views() if gt is not None else TruthViews(np.zeros((0, 4, 4)))
@@ -211,7 +212,7 @@ def reconstruct(
         poses = poses_of(data.track)
         out.root.mkdir(parents=True, exist_ok=True)
         # stage I is not run again for stage II alone, nor to go on with an interrupted stage II
-        skip = "radiance" not in runs or states["material"] is not None
+        skip = not fits_radiance or states["material"] is not None
         resumed = skip or states["radiance"] is not None
         before = out.previous_result() if resumed else ReconstructionResult()
         result = before if skip else ReconstructionResult()
@@ -244,7 +245,7 @@ def reconstruct(
             result.interrupted, result.history = fit.interrupted, fit.history
             result.training_log["radiance"] = [dataclasses.asdict(x) for x in fit.log]
             stopped = fit.interrupted
-        if "material" in runs and not stopped:
+        if fits_material and not stopped:
             if states["material"] is not None:
                 say(_going_on("stage II", states["material"], mconfig.iterations))
             earlier = (before.material_seconds or 0.0) if states["material"] is not None else 0.0
@@ -263,7 +264,7 @@ def reconstruct(
                 resume=states["material"],
                 save_state=lambda state: resume_.save_state(path, state, settings["material"]),
             )
-    if "material" in runs and not stopped:
+    if fits_material and not stopped:
         figures = result.figures
         if figures.normal_mae_deg is not None and figures.radiance_normal_mae_deg is None:
             figures.radiance_normal_mae_deg = figures.normal_mae_deg
@@ -291,7 +292,7 @@ def reconstruct(
         },
         "radiance": cfg.to_dict(config),
     }
-    if "material" in runs:
+    if fits_material:
         sections["material"] = cfg.to_dict(mconfig)
     out.write_config(sections)
     out.write_result(result)
