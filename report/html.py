@@ -1,6 +1,7 @@
 """`evcap report OUT`: OUT/report.html, one self-contained page of a reconstruction folder and
-its session: the session's summary, the calibration maps, the trajectory, event edge maps, the
-recovered maps beside the truth, relit views, the metrics and the accuracy-versus-time plot.
+its session: first the recovered maps beside the truth, the relit views, the metrics and the
+accuracy-versus-time plot; then how it was made: the session's summary, the calibration maps,
+the trajectory, event edge maps.
 
 Every image is a PNG data URI and every plot inline SVG, so the page opens with no network.
 A section whose data is not there says so in one line.
@@ -49,16 +50,17 @@ from evcap.report.images import (
 from evcap.report.svg import COLORS, Series, Track, line_plot, trajectory_views
 from evcap.session import Session
 
-# the sections, in order: (anchor, heading)
+# the sections, in order: (anchor, heading). The page opens with what was recovered beside the
+# truth, the figures after it, and then how it was made
 SECTIONS = (
-    ("session", "Session"),
-    ("calibration", "Calibration"),
-    ("trajectory", "Trajectory"),
-    ("edges", "Event edge maps"),
     ("maps", "Recovered maps and the truth"),
     ("relit", "Relit views and the light"),
     ("metrics", "Metrics"),
     ("progress", "Accuracy versus time"),
+    ("session", "Session"),
+    ("calibration", "Calibration"),
+    ("trajectory", "Trajectory"),
+    ("edges", "Event edge maps"),
 )
 EDGE_MAPS = 3  # each takes about 2 s for a 346 x 260 sensor on one CPU core
 EDGE_SLICE_MS = 10.0  # stage II's default, when its settings do not say
@@ -211,7 +213,7 @@ def _page(out: Path, bodies: dict[str, str]) -> str:
     )
 
 
-# -- 1. the session --------------------------------------------------------------------------
+# -- the session --------------------------------------------------------------------------
 
 
 def _session_section(s: Session, run: dict) -> str:
@@ -226,7 +228,7 @@ def _session_section(s: Session, run: dict) -> str:
     return "".join(parts)
 
 
-# -- 2. the calibration ----------------------------------------------------------------------
+# -- the calibration ----------------------------------------------------------------------
 
 
 def _calibration_section(s: Session) -> str:
@@ -332,7 +334,7 @@ def _calibration_maps(cal: Calibration) -> str:
     return "<div>" + "".join(figures) + "</div>"
 
 
-# -- 3. the trajectory -----------------------------------------------------------------------
+# -- the trajectory -----------------------------------------------------------------------
 
 
 def _trajectory_section(s: Session) -> str:
@@ -413,7 +415,7 @@ def _trajectory_section(s: Session) -> str:
     return _table(rows) + note + trajectory_views(tracks, units=units) + "".join(parts)
 
 
-# -- 4. event edge maps ----------------------------------------------------------------------
+# -- event edge maps ----------------------------------------------------------------------
 
 
 def _edges_section(s: Session, material: dict) -> str:
@@ -462,7 +464,7 @@ def _pairs(figures: list[str]) -> str:
     )
 
 
-# -- 5. recovered maps and the truth ---------------------------------------------------------
+# -- recovered maps and the truth ---------------------------------------------------------
 
 
 def _maps_section(folder: ReconstructionFolder, s: Session) -> str:
@@ -581,7 +583,7 @@ def _map_image(key: str, value: np.ndarray, lo: float, hi: float) -> str:
     return png_data_uri(srgb8(value))
 
 
-# -- 6. relit views and the light ------------------------------------------------------------
+# -- relit views and the light ------------------------------------------------------------
 
 
 def _relit_section(folder: ReconstructionFolder) -> str:
@@ -610,7 +612,7 @@ def _relit_section(folder: ReconstructionFolder) -> str:
     return html + "<p>The views relit under the new light:</p><div>" + "".join(figures) + "</div>"
 
 
-# -- 7. metrics ------------------------------------------------------------------------------
+# -- metrics ------------------------------------------------------------------------------
 
 
 def _metrics_section(result: ReconstructionResult) -> str:
@@ -650,7 +652,7 @@ def _metrics_section(result: ReconstructionResult) -> str:
     return note + f"<table><tr><th>metric</th><th>value</th><th>unit</th></tr>{body}</table>"
 
 
-# -- 8. accuracy versus time -----------------------------------------------------------------
+# -- accuracy versus time -----------------------------------------------------------------
 
 
 def _progress_section(result: ReconstructionResult) -> str:

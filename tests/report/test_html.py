@@ -185,6 +185,9 @@ def test_writes_every_section(page):
     for k, (_, title) in enumerate(SECTIONS, start=1):
         assert f"<h2>{k}. {title}</h2>" in text
     assert "<svg" in text
+    # it opens with the recovered object beside the truth; the figures after, then the making
+    where = {key: text.index(f'<section id="{key}">') for key, _ in SECTIONS}
+    assert where["maps"] < where["relit"] < where["metrics"] < where["session"]
 
 
 def test_is_self_contained(page):
