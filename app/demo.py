@@ -22,7 +22,8 @@ from evcap.errors import InputError, OutputExistsError
 from evcap.recon.config import Preset
 
 FIXTURES = Path(__file__).resolve().parent / "demo_data"  # package data: in the wheel too
-SCENE, CALIBRATION = "demo-scene", "demo-calibration"
+SCENE, CALIBRATION = "demo-scene", "demo-calibration"  # the captures
+SCENE_FILE, CALIBRATION_FILE = "scene.h5", "calibration.h5"  # their recordings, in DIR
 PRESETS: tuple[Preset, ...] = ("small", "fast")  # recon's presets that a CPU runs in minutes
 RELIGHT = "relight.png"  # the new light the demo's views are also lit by
 EARLIER_STATE = "demo.json"  # the state file of the demo before it ran on the pipeline
@@ -30,8 +31,7 @@ EARLIER_STATE = "demo.json"  # the state file of the demo before it ran on the p
 
 def demo_workspace(out: str | Path) -> Workspace:
     """DIR/scene.h5 (the scene's recording, the pipeline's session), DIR/calibration.h5."""
-    out = Path(out)
-    return Workspace(out, "scene.h5", calibration=out / "calibration.h5")
+    return Workspace(Path(out), SCENE_FILE, calibration=Path(out) / CALIBRATION_FILE)
 
 
 def demo_pipeline(
@@ -50,8 +50,7 @@ def demo_pipeline(
     pipeline = Pipeline(
         ws, settings, say=say, progress=progress, hint="pass --force to start the demo over"
     )
-    assert ws.calibration is not None
-    for fixture, path in ((CALIBRATION, ws.calibration), (SCENE, ws.session)):
+    for fixture, path in ((CALIBRATION, ws.root / CALIBRATION_FILE), (SCENE, ws.session)):
         pipeline.add(
             StepDefinition(
                 f"record {path.name} (replayed through the driver)",
