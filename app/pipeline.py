@@ -96,6 +96,16 @@ class Workspace:
     def state(self) -> Path:
         return self.root / STATE
 
+    def holds(self, record: Literal["calibration", "poses"]) -> bool:
+        """The session is there and holds that record's group."""
+        from evcap.records import Calibration, Poses
+        from evcap.session import Session
+
+        if not self.session.exists():
+            return False
+        with Session.open(self.session, validate=False) as s:
+            return (Calibration if record == "calibration" else Poses).present(s)
+
     def copy_source(self) -> None:
         """The source recording, checked as a session (a corrupt one fails here, named),
         copied to the session once; the copy takes its name only when it is whole."""
@@ -147,8 +157,8 @@ class Pipeline:
         self.workspace, self.settings, self.say, self.hint = workspace, settings, say, hint
         self.progress = progress or _no_progress
         self.steps: list[StepDefinition] = [
-            StepDefinition("calibrate", self._calibrate, self._calibrated),
-            StepDefinition("poses", self._poses, self._posed),
+            StepDefinition("calibrate", self._calibrate, lambda: workspace.holds("calibration")),
+            StepDefinition("poses", self._poses, lambda: workspace.holds("poses")),
             StepDefinition("reconstruct", self._reconstruct, workspace.reconstruction.finished),
             StepDefinition("report", self._report, workspace.report.exists),
         ]
@@ -259,24 +269,6 @@ class Pipeline:
         write_text_atomic(self.workspace.state, json.dumps(state, indent=1))
 
     # -- the steps -----------------------------------------------------------------------------
-
-    def _calibrated(self) -> bool:
-        from evcap.records import Calibration
-        from evcap.session import Session
-
-        if not self.workspace.session.exists():
-            return False
-        with Session.open(self.workspace.session, validate=False) as s:
-            return Calibration.present(s)
-
-    def _posed(self) -> bool:
-        from evcap.records import Poses
-        from evcap.session import Session
-
-        if not self.workspace.session.exists():
-            return False
-        with Session.open(self.workspace.session, validate=False) as s:
-            return Poses.present(s)
 
     def _calibrate(self) -> str:
         """Measure the calibration recording's calibration (unless it holds one) and write it
