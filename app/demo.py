@@ -11,12 +11,14 @@ first step not yet done.
 from __future__ import annotations
 
 import shutil
+import subprocess
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
+from evcap.app import compile_ahead
 from evcap.app.pipeline import Pipeline, Progress, Settings, StepDefinition, Workspace
 from evcap.errors import InputError, OutputExistsError
 from evcap.recon.config import Preset
@@ -42,23 +44,37 @@ def demo_pipeline(
     say: Callable[[str], None] = print,
     progress: Progress | None = None,
 ) -> Pipeline:
-    """The pipeline with the demo's steps: recording the two captures, first; registering the
-    estimated poses to the truth, after the poses."""
+    """The pipeline with the demo's steps: starting the compilation of the reconstruction's
+    kernels in a second process and recording the two captures, first; registering the
+    estimated poses to the truth, after the poses; the compiled kernels waited for, before the
+    reconstruction."""
     ws = demo_workspace(out)
     fixtures = Path(fixtures) if fixtures is not None else FIXTURES
     settings = Settings(preset=preset, relight=RELIGHT)
     pipeline = Pipeline(
         ws, settings, say=say, progress=progress, hint="pass --force to start the demo over"
     )
+    ahead = _Ahead()
+    pipeline.add(
+        StepDefinition(
+            "compile the reconstruction's kernels (a second process, beside the next steps)",
+            lambda: ahead.start(fixtures, ws.root / RELIGHT, preset),
+            lambda: True,
+        ),
+        before="calibrate",
+    )
     for fixture, path in ((CALIBRATION, ws.root / CALIBRATION_FILE), (SCENE, ws.session)):
         pipeline.add(
             StepDefinition(
                 f"record {path.name} (replayed through the driver)",
-                lambda f=fixture, p=path: _record(fixtures / f, p),
+                lambda f=fixture, p=path: record_fixture(fixtures / f, p),
                 path.exists,
             ),
             before="calibrate",
         )
+    pipeline.add(
+        StepDefinition("the compiled kernels", ahead.finish, lambda: True), before="reconstruct"
+    )
     pipeline.add(
         StepDefinition(
             "register the poses to the simulator's truth",
@@ -68,6 +84,25 @@ def demo_pipeline(
         before="reconstruct",
     )
     return pipeline
+
+
+class _Ahead:
+    """The process compiling the reconstruction's kernels (app/compile_ahead.py), if started:
+    by the demo's first step, waited for before the reconstruction."""
+
+    def __init__(self) -> None:
+        self.process: subprocess.Popen | None = None
+        self.started = 0.0
+
+    def start(self, fixtures: Path, relight: Path, preset: Preset) -> str:
+        self.process, self.started = (
+            compile_ahead.start(fixtures, relight, preset),
+            time.perf_counter(),
+        )
+        return "started"
+
+    def finish(self) -> str:
+        return compile_ahead.finish(self.process, self.started)
 
 
 def run_demo(
@@ -125,7 +160,8 @@ def _prepare(ws: Workspace, force: bool) -> None:
     ws.root.mkdir(parents=True, exist_ok=True)
 
 
-def _record(fixture: Path, path: Path) -> str:
+def record_fixture(fixture: Path, path: Path) -> str:
+    """Record a capture (a hardware-replay fixture) through the driver into ``path``."""
     from evcap.acquire.device import Davis346
     from evcap.acquire.recorder import Recorder, RecordOptions
 

@@ -9,9 +9,11 @@ import torch.nn.functional as F
 
 from evcap.recon.material import CHANNELS, MaterialField
 from evcap.recon.metrics import (
+    background_clear,
     blur_psnr,
     depth_abs_err,
     depth_rel_err,
+    depth_within,
     image_metrics,
     lpips_if_available,
     normal_mae_deg,
@@ -75,6 +77,9 @@ def metrics(views: dict[str, np.ndarray], truth: TruthViews) -> dict[str, float 
     if truth.depth is not None:
         out["depth_abs_err"] = depth_abs_err(views["depth"], truth.depth)
         out["depth_rel_err"] = depth_rel_err(views["depth"], truth.depth)
+        out["depth_within_5pct"] = depth_within(views["depth"], truth.depth)
+    if mask is not None:
+        out["background_clear"] = background_clear(views["alpha"], mask)
     if truth.normal is not None:
         out["normal_mae_deg"] = normal_mae_deg(views["normal"], truth.normal)
     return out

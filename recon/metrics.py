@@ -99,6 +99,20 @@ def depth_rel_err(pred: np.ndarray, gt: np.ndarray) -> float:
     return float((np.abs(pred[m] - gt[m]) / gt[m]).mean()) if m.any() else float("nan")
 
 
+def depth_within(pred: np.ndarray, gt: np.ndarray, share: float = 0.05) -> float:
+    """The share of the pixels where the truth has a surface whose depth is within ``share``
+    of it (does the depth map show the object's shape, not a slope that averages well)."""
+    m = gt > 0
+    return float((np.abs(pred[m] - gt[m]) <= share * gt[m]).mean()) if m.any() else float("nan")
+
+
+def background_clear(alpha: np.ndarray, mask: np.ndarray) -> float:
+    """The share of the pixels off the object (``mask`` False) where the Gaussians' alpha is
+    below 0.5: the environment seen through, not fog."""
+    off = ~mask
+    return float((alpha[off] < 0.5).mean()) if off.any() else float("nan")
+
+
 def normal_mae_deg(pred: np.ndarray, gt: np.ndarray) -> float:
     """Mean angle (degrees) between unit normals where the truth has a surface; a missing
     prediction (zero vector) counts as 90 degrees."""
@@ -140,7 +154,8 @@ def surface_metrics(
 ) -> dict[str, float]:
     """PSNR and SSIM of a material map [N, H, W, 3] on the surface only (``mask`` [N, H, W]),
     raw and after a per-channel affine correction fitted there; off the surface both images
-    are 0 for SSIM. ``regions``: name -> mask, a PSNR (corrected) inside each."""
+    are 0 for SSIM; the PSNR of the best single constant color there (``_psnr_constant``).
+    ``regions``: name -> mask, a PSNR (corrected) inside each."""
     if not mask.any():
         return {}
     cc = fit_color_correction(pred[mask], gt[mask])
@@ -153,6 +168,7 @@ def surface_metrics(
         f"{prefix}_ssim": ssim(a, b),
         f"{prefix}_psnr_cc": psnr(c[mask], b[mask]),
         f"{prefix}_ssim_cc": ssim(c, b),
+        f"{prefix}_psnr_constant": psnr(np.broadcast_to(b[mask].mean(0), b[mask].shape), b[mask]),
     }
     for name, region in (regions or {}).items():
         region = region & mask

@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
 # Create .venv (if missing) and install evcap with its test tools and Ray (evcap batch) into it.
 # torch goes first, pinned to the local CPU build; every later install is constrained to it,
-# so that no dependency can pull a CUDA build of torch from PyPI.
+# so that no dependency can pull a CUDA build of torch from PyPI. --no-compile: pip would
+# byte-compile every module it installs (torch's thousands: about a minute of the setup here);
+# Python compiles the ones it imports when it first imports them.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python3 -m venv .venv
 .venv/bin/python -m pip install --quiet --upgrade pip
-.venv/bin/python -m pip install --quiet torch==2.13.0
-.venv/bin/python -m pip install --quiet -c constraints.txt -e '.[test,cluster]'
+.venv/bin/python -m pip install --quiet --no-compile torch==2.13.0
+.venv/bin/python -m pip install --quiet --no-compile -c constraints.txt -e '.[test,cluster]'

@@ -23,13 +23,17 @@ SHOWN = (
     "object_psnr_constant",
     "normal_mae_deg",
     "depth_rel_err",
+    "depth_within_5pct",
+    "background_clear",
     "render_psnr_cc",
     "blur_psnr",
     "base_color_psnr_cc",
+    "base_color_psnr_constant",
     "base_color_psnr_cc_baseline",
     "roughness_mae",
     "pbr_render_psnr_cc",
     "relit_object_psnr_cc",
+    "relit_object_psnr_constant",
     "relit_object_psnr_cc_baseline",
 )
 
@@ -60,6 +64,12 @@ class Figures:
     lpips: float | None = _figure("LPIPS (AlexNet)", "", STAGE_I)
     depth_rel_err: float | None = _figure("depth error, share of the distance", "", STAGE_I)
     depth_abs_err: float | None = _figure("depth error, mean absolute", "scene units", STAGE_I)
+    depth_within_5pct: float | None = _figure(
+        "object pixels with their depth within 5 %", "fraction", STAGE_I
+    )
+    background_clear: float | None = _figure(
+        "pixels off the object seen through (alpha < 0.5)", "fraction", STAGE_I
+    )
     radiance_normal_mae_deg: float | None = _figure("normal error, mean angle", "deg", STAGE_I)
     # the last stage's normals: stage II's after it, else stage I's
     normal_mae_deg: float | None = _figure("normal error, mean angle", "deg", STAGE_II)
@@ -73,6 +83,9 @@ class Figures:
     base_color_ssim: float | None = _figure("base color SSIM", "", STAGE_II)
     base_color_psnr_cc: float | None = _figure("base color PSNR, color-corrected", "dB", STAGE_II)
     base_color_ssim_cc: float | None = _figure("base color SSIM, color-corrected", "", STAGE_II)
+    base_color_psnr_constant: float | None = _figure(
+        "base color PSNR of the best constant color", "dB", STAGE_II
+    )
     base_color_psnr_cc_baseline: float | None = _figure(
         "stage I's radiance taken as the base color, PSNR color-corrected", "dB", STAGE_II
     )
@@ -93,6 +106,9 @@ class Figures:
         "relit object PSNR, color-corrected", "dB", STAGE_II
     )
     relit_object_ssim_cc: float | None = _figure("relit object SSIM, color-corrected", "", STAGE_II)
+    relit_object_psnr_constant: float | None = _figure(
+        "relit object PSNR of the best constant color", "dB", STAGE_II
+    )
     relit_object_psnr_cc_baseline: float | None = _figure(
         "the views never relit, object PSNR against the relit truth, color-corrected",
         "dB",

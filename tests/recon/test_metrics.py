@@ -5,7 +5,15 @@ import numpy as np
 import pytest
 
 from evcap.images import fit_color_correction, fit_gain
-from evcap.recon.metrics import blur_psnr, depth_rel_err, object_metrics, psnr, srgb
+from evcap.recon.metrics import (
+    background_clear,
+    blur_psnr,
+    depth_rel_err,
+    depth_within,
+    object_metrics,
+    psnr,
+    srgb,
+)
 from evcap.records import TruthViews
 
 
@@ -98,3 +106,25 @@ def test_the_radiance_as_base_color_baseline(scene):
     x = np.linspace(0.3, 1.0, base.shape[2])
     varying = material_metrics(views, truth, base * x[None, None, :, None])
     assert varying["base_color_psnr_cc_baseline"] < 30 < varying["base_color_psnr_cc"]
+    # a checkered base color: the best constant color over the surface scores low
+    assert tint["base_color_psnr_constant"] < 15
+
+
+def test_the_share_of_the_object_within_five_percent():
+    truth = np.zeros((1, 4, 4), np.float32)
+    truth[0, :2, :2] = 2.0  # four object pixels
+    pred = truth.copy()
+    pred[0, 0, 0] = 2.2  # 10 % off
+    pred[0, 0, 1] = 2.09  # 4.5 % off: within
+    assert depth_within(pred, truth) == pytest.approx(0.75)
+    assert depth_within(pred, truth, share=0.2) == 1.0
+    assert np.isnan(depth_within(pred, np.zeros_like(truth)))  # no object: no figure
+
+
+def test_the_backdrop_seen_through():
+    mask = np.zeros((1, 2, 3), bool)
+    mask[0, 0, 0] = True
+    alpha = np.array([[[1.0, 0.9, 0.1], [0.49, 0.5, 0.0]]])
+    # off the object: 0.9, 0.1, 0.49, 0.5, 0.0 -> three below 0.5; the object's alpha not counted
+    assert background_clear(alpha, mask) == pytest.approx(3 / 5)
+    assert np.isnan(background_clear(alpha, np.ones_like(mask)))

@@ -1,0 +1,80 @@
+"""The reconstruction's compiled CPU kernels, made ahead in a second process.
+
+numba compiles each kernel at its first call and caches it beside the code: on a fresh install
+that is about 100 s of one core, once. `evcap demo` starts this process first, so that the
+kernels compile on one core while the other replays, calibrates and poses the captures; the
+reconstruction then finds them in the cache. The process reconstructs a few steps of both
+stages of the demo's own captures on the truth's poses, in a temporary folder: the kernels
+compiled are the reconstruction's own, for the same kinds of arrays.
+
+    python -m evcap.app.compile_ahead FIXTURES RELIGHT PRESET
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from evcap.recon.config import Preset
+
+
+def start(fixtures: Path, relight: Path, preset: Preset) -> subprocess.Popen:
+    """The compiling process, started (its output discarded; its exit status says how it
+    went)."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "evcap.app.compile_ahead", str(fixtures), str(relight), preset],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def finish(process: subprocess.Popen | None, started: float) -> str:
+    """Wait for the process; what it did, in a line. A failure is said, not raised: the
+    reconstruction then compiles what it needs itself."""
+    if process is None:
+        return "nothing to compile"
+    _, errors = process.communicate()
+    waited = time.perf_counter() - started
+    if process.returncode != 0:
+        last = (errors or "").strip().splitlines()[-1:] or ["no message"]
+        return f"not compiled ahead ({last[0]}); the reconstruction compiles them itself"
+    return f"compiled in the background, done {waited:.0f} s after the demo started"
+
+
+def compile_kernels(fixtures: Path, relight: Path, preset: Preset) -> None:
+    """Record the demo's two captures, calibrate, give the scene the truth's poses and run both
+    stages of the preset for a few steps, refining the poses as on estimated ones."""
+    from evcap.app.demo import CALIBRATION, SCENE, record_fixture
+    from evcap.calib.board import DEFAULT_BOARD
+    from evcap.calib.calibrate import calibrate, write_calibration
+    from evcap.recon.reconstruct import reconstruct
+    from evcap.records import GroundTruth
+    from evcap.session import Session
+    from evcap.sim.truth import copy_truth
+
+    with tempfile.TemporaryDirectory() as tmp:
+        board, session = Path(tmp) / "calibration.h5", Path(tmp) / "scene.h5"
+        record_fixture(fixtures / CALIBRATION, board)
+        record_fixture(fixtures / SCENE, session)
+        write_calibration([session], calibrate(board, board=DEFAULT_BOARD))
+        copy_truth(fixtures / SCENE / "truth.h5", session, replace=True)
+        with Session.open(session) as s:
+            track = GroundTruth.read(s).poses()
+        track.write(session)
+        reconstruct(
+            session,
+            Path(tmp) / "reconstruction",
+            preset=preset,
+            iterations=3,
+            material_iterations=2,
+            relight=relight,
+            refine_poses="on",
+        )
+
+
+if __name__ == "__main__":
+    compile_kernels(Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3])  # type: ignore[arg-type]

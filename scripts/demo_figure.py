@@ -1,0 +1,51 @@
+"""The README's figure of the demo: each held-out view's truth beside what the demo recovered
+(radiance after the color correction object_psnr_cc uses, normals, depth; stage II's base
+color), drawn as the report draws them.
+
+    .venv/bin/python scripts/demo_figure.py evcap-demo docs/figures/demo.png
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from evcap.images import fit_color_correction
+from evcap.records import GroundTruth
+from evcap.records.reconstruction_folder import ReconstructionFolder
+from evcap.report.images import depth_image, depth_range, normal_image, srgb8
+from evcap.session import Session
+
+
+def main(demo: Path, out: Path) -> None:
+    folder = ReconstructionFolder(demo / "reconstruction")
+    with Session.open(demo / "scene.h5") as s:
+        truth = GroundTruth.read(s).held_out_views()
+    stage_one = dict(np.load(folder.views_values("radiance", "test")))
+    stage_two = dict(np.load(folder.views_values("material", "test")))
+    mask = truth.object_mask()
+    cc = fit_color_correction(stage_one["radiance"][mask], truth.radiance[mask])
+    rows = []
+    for i in range(len(truth)):
+        lo, hi = depth_range(truth.depth[i], stage_one["depth"][i])
+        rows.append(
+            [
+                srgb8(truth.radiance[i]),
+                srgb8(stage_one["radiance"][i] * cc[:, 0] + cc[:, 1]),
+                normal_image(truth.normal[i]),
+                normal_image(stage_one["normal"][i]),
+                depth_image(truth.depth[i], lo, hi),
+                depth_image(stage_one["depth"][i], lo, hi),
+                srgb8(truth.base_color[i]),
+                srgb8(stage_two["base_color"][i]),
+            ]
+        )
+    grid = np.concatenate([np.concatenate(r, 1) for r in rows], 0)
+    Image.fromarray(grid).save(out)
+
+
+if __name__ == "__main__":
+    main(Path(sys.argv[1]), Path(sys.argv[2]))
