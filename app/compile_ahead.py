@@ -4,7 +4,7 @@ numba compiles each kernel at its first call and caches it beside the code: on a
 that is about 100 s of one core, once. `evcap demo` starts this process first, so that the
 kernels compile on one core while the other replays, calibrates and poses the captures; the
 reconstruction then finds them in the cache. The process reconstructs a few steps of both
-stages of the demo's own captures on the truth's poses, in a temporary folder: the kernels
+stages of the demo's own scene on the truth's poses, in a temporary folder: the kernels
 compiled are the reconstruction's own, for the same kinds of arrays.
 
     python -m evcap.app.compile_ahead FIXTURES RELIGHT PRESET
@@ -35,8 +35,8 @@ def start(fixtures: Path, relight: Path, preset: Preset) -> subprocess.Popen:
 def finish(process: subprocess.Popen | None, started: float) -> str:
     """Wait for the process; what it did, in a line. A failure is said, not raised: the
     reconstruction then compiles what it needs itself."""
-    if process is None:
-        return "nothing to compile"
+    if process is None:  # the demo went on from an earlier run
+        return "not compiled ahead in this run; the reconstruction compiles what it lacks"
     _, errors = process.communicate()
     waited = time.perf_counter() - started
     if process.returncode != 0:
@@ -46,25 +46,38 @@ def finish(process: subprocess.Popen | None, started: float) -> str:
 
 
 def compile_kernels(fixtures: Path, relight: Path, preset: Preset) -> None:
-    """Record the demo's two captures, calibrate, give the scene the truth's poses and run both
-    stages of the preset for a few steps, refining the poses as on estimated ones."""
-    from evcap.app.demo import CALIBRATION, SCENE, record_fixture
-    from evcap.calib.board import DEFAULT_BOARD
-    from evcap.calib.calibrate import calibrate, write_calibration
+    """Record the demo's scene, give it the truth's poses and a calibration of the kinds
+    `evcap calibrate` writes (its values do not matter here: the kernels are compiled for the
+    kinds of arrays, not their values) and run both stages of the preset for a few steps,
+    refining the poses as on estimated ones."""
+    import numpy as np
+
+    from evcap.app.demo import SCENE, record_fixture
     from evcap.recon.reconstruct import reconstruct
-    from evcap.records import GroundTruth
+    from evcap.records import Calibration, GroundTruth
     from evcap.session import Session
     from evcap.sim.truth import copy_truth
 
     with tempfile.TemporaryDirectory() as tmp:
-        board, session = Path(tmp) / "calibration.h5", Path(tmp) / "scene.h5"
-        record_fixture(fixtures / CALIBRATION, board)
+        session = Path(tmp) / "scene.h5"
         record_fixture(fixtures / SCENE, session)
-        write_calibration([session], calibrate(board, board=DEFAULT_BOARD))
-        copy_truth(fixtures / SCENE / "truth.h5", session, replace=True)
+        copy_truth(fixtures / SCENE / "truth.h5", session, poses=True, replace=True)
         with Session.open(session) as s:
-            track = GroundTruth.read(s).poses()
-        track.write(session)
+            K, (w, h) = GroundTruth.read(s).K, (s.sensor.width, s.sensor.height)
+        ones = np.ones((h, w), np.float32)
+        Calibration(
+            w,
+            h,
+            "compile ahead: a stand-in",
+            K=K,
+            distortion_model="radtan",
+            dist=np.array([-0.4, 0.3, 0.0, 0.0, 0.0]),
+            threshold_on=0.2 * ones,
+            threshold_off=0.2 * ones,
+            threshold_confidence=ones,
+            hot_pixels=np.zeros((h, w), bool),
+            event_rate_hz=ones,
+        ).write(session)
         reconstruct(
             session,
             Path(tmp) / "reconstruction",

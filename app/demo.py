@@ -43,18 +43,19 @@ def demo_pipeline(
     fixtures: str | Path | None = None,
     say: Callable[[str], None] = print,
     progress: Progress | None = None,
+    ahead: KernelsAhead | None = None,
 ) -> Pipeline:
     """The pipeline with the demo's steps: starting the compilation of the reconstruction's
-    kernels in a second process and recording the two captures, first; registering the
-    estimated poses to the truth, after the poses; the compiled kernels waited for, before the
-    reconstruction."""
+    kernels in a second process (``ahead``) and recording the two captures, first; registering
+    the estimated poses to the truth, after the poses; the compiled kernels waited for, before
+    the reconstruction."""
     ws = demo_workspace(out)
     fixtures = Path(fixtures) if fixtures is not None else FIXTURES
     settings = Settings(preset=preset, relight=RELIGHT)
     pipeline = Pipeline(
         ws, settings, say=say, progress=progress, hint="pass --force to start the demo over"
     )
-    ahead = _Ahead()
+    ahead = ahead or KernelsAhead()
     pipeline.add(
         StepDefinition(
             "compile the reconstruction's kernels (a second process, beside the next steps)",
@@ -86,9 +87,10 @@ def demo_pipeline(
     return pipeline
 
 
-class _Ahead:
+class KernelsAhead:
     """The process compiling the reconstruction's kernels (app/compile_ahead.py), if started:
-    by the demo's first step, waited for before the reconstruction."""
+    by the demo's first step, waited for before the reconstruction, ended if the demo ends
+    first (an error, Ctrl-C)."""
 
     def __init__(self) -> None:
         self.process: subprocess.Popen | None = None
@@ -103,6 +105,11 @@ class _Ahead:
 
     def finish(self) -> str:
         return compile_ahead.finish(self.process, self.started)
+
+    def stop(self) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.kill()
+            self.process.wait()
 
 
 def run_demo(
@@ -128,13 +135,22 @@ def run_demo(
             )
     ws = demo_workspace(out)
     _prepare(ws, force)
+    ahead = KernelsAhead()
     pipeline = demo_pipeline(
-        out, preset=preset, fixtures=fixtures, say=say, progress=progress or progress_bar
+        out,
+        preset=preset,
+        fixtures=fixtures,
+        say=say,
+        progress=progress or progress_bar,
+        ahead=ahead,
     )
     if not (ws.root / RELIGHT).exists():
         write_relight_environment(ws.root / RELIGHT)
     started = time.perf_counter()
-    pipeline.run()
+    try:
+        pipeline.run()
+    finally:
+        ahead.stop()
     say(f"the demo took {time.perf_counter() - started:.0f} s here; open {ws.report}")
     return ws.report
 
