@@ -191,7 +191,7 @@ TINY = RadianceConfig(
 GEOMETRY_TERMS = {"spread_weight": 10.0, "background_first": 0.1, "smooth_weight": 0.3}
 PRESETS: dict[Preset, RadianceConfig] = {
     "tiny": TINY,
-    # tiny's Gaussians for 700 steps at half scale (about a minute and a half here), with fast's
+    # tiny's Gaussians for 550 steps at half scale (about a minute and a half here), with fast's
     # geometry terms and view dependence of degree 1, started on the points structure from
     # motion triangulated. Measured on the demo's capture (its estimated poses; object PSNR on
     # the held-out views, constant color 17.2; seeds 1 to 4, never the demo's 0): tiny's own
@@ -202,12 +202,12 @@ PRESETS: dict[Preset, RadianceConfig] = {
     # Gaussians barely move; 10 times overshoots, normals 21 deg): depth 3.6 to 4.0 %; the mean
     # alpha weighted 0.1 (0.03, 0.05: fog on 10 to 19 % of the backdrop): alpha < 0.5 on 93 to
     # 97 % off the object, object 20.3 to 20.7 dB, normals 18 to 21 deg, depth 3.9 to 4.6 %.
-    # 700 steps instead of 1,000 (seeds 1 and 2): object 20.1 / 20.1 dB (20.1 / 20.6), normals
-    # 18 / 18 deg (19 / 20), depth 3.7 / 3.7 % (4.0 / 4.1), in 70 % of the time: the demo in
-    # 5 minutes from a fresh clone
+    # Fewer steps (seeds 1 and 2), for the demo in 5 minutes from a fresh clone: 700 steps
+    # object 20.2 / 20.1 dB (1,000: 20.1 / 20.6), normals 18 / 18 deg (19 / 20), depth 3.7 / 3.7
+    # % (4.0 / 4.1); 550 steps 20.3 / 20.1 dB, 19 / 18 deg, 3.9 / 3.9 %
     "small": dataclasses.replace(
         TINY,
-        iterations=700,
+        iterations=550,
         resolution=0.5,
         sh_degree=1,
         init_on_points=1.0,

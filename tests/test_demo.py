@@ -17,7 +17,7 @@ from evcap.app.pipeline import PipelineInterrupted
 from evcap.errors import InputError, OutputExistsError
 from evcap.recon import config
 
-SHORT = 150  # stage I's steps in the test of the demo's mechanics (the demo's own: 700)
+SHORT = 150  # stage I's steps in the test of the demo's mechanics (the demo's own: 550)
 
 
 @contextmanager
