@@ -93,18 +93,17 @@ def test_the_demo_recovers_the_sphere(tmp_path):
 def test_the_kernels_compiled_ahead_are_all_the_reconstruction_needs(tmp_path):
     """A reconstruction after app/compile_ahead.py compiles nothing (in a fresh cache)."""
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
-    out = tmp_path / "demo"
-    out.mkdir()
-    demo.write_relight_environment(out / demo.RELIGHT)
+    out, relight = tmp_path / "demo", tmp_path / demo.RELIGHT
+    demo.write_relight_environment(relight)
     ahead = [sys.executable, "-m", "evcap.app.compile_ahead", str(demo.FIXTURES)]
-    subprocess.run([*ahead, str(out / demo.RELIGHT), "small"], env=env, check=True)
+    subprocess.run([*ahead, str(relight), "small"], env=env, check=True)
     script = f"""
 import json
 from numba.core import event
 from evcap.app import demo
 with event.install_recorder("numba:compile") as compiled:
     demo.run_demo({str(out)!r}, say=lambda line: None)
-names = {{e.data["dispatcher"].py_func.__module__ for e in compiled.buffer if e.is_start}}
+names = {{e.data["dispatcher"].py_func.__module__ for _, e in compiled.buffer if e.is_start}}
 print(json.dumps(sorted(n for n in names if n.startswith("evcap.recon"))))
 """
     run = subprocess.run(
