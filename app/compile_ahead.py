@@ -21,28 +21,39 @@ from pathlib import Path
 from evcap.recon.config import Preset
 
 
-def start(fixtures: Path, relight: Path, preset: Preset) -> subprocess.Popen:
-    """The compiling process, started (its output discarded; its exit status says how it
-    went)."""
-    return subprocess.Popen(
-        [sys.executable, "-m", "evcap.app.compile_ahead", str(fixtures), str(relight), preset],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+class Compiling:
+    """The compiling process, started (its output discarded, its errors kept in a temporary
+    file, not a pipe that could fill and stall it)."""
 
+    def __init__(self, fixtures: Path, relight: Path, preset: Preset) -> None:
+        self.started = time.perf_counter()
+        # open while the process runs: read and closed when it is waited for or ended
+        self.errors = tempfile.TemporaryFile()  # noqa: SIM115
+        command = [sys.executable, "-m", "evcap.app.compile_ahead", str(fixtures), str(relight)]
+        self.process = subprocess.Popen(
+            [*command, preset], stdout=subprocess.DEVNULL, stderr=self.errors
+        )
 
-def finish(process: subprocess.Popen | None, started: float) -> str:
-    """Wait for the process; what it did, in a line. A failure is said, not raised: the
-    reconstruction then compiles what it needs itself."""
-    if process is None:  # the demo went on from an earlier run
-        return "not compiled ahead in this run; the reconstruction compiles what it lacks"
-    _, errors = process.communicate()
-    waited = time.perf_counter() - started
-    if process.returncode != 0:
-        last = (errors or "").strip().splitlines()[-1:] or ["no message"]
-        return f"not compiled ahead ({last[0]}); the reconstruction compiles them itself"
-    return f"compiled in the background, done {waited:.0f} s after the demo started"
+    def finish(self) -> str:
+        """Wait for it; what it did, in a line. A failure is said, not raised: the
+        reconstruction then compiles what it needs itself."""
+        self.process.wait()
+        waited = time.perf_counter() - self.started
+        if self.process.returncode != 0:
+            self.errors.seek(0)
+            lines = self.errors.read().decode(errors="replace").strip().splitlines()
+            self.errors.close()
+            why = lines[-1] if lines else f"exit status {self.process.returncode}"
+            return f"not compiled ahead ({why}); the reconstruction compiles them itself"
+        self.errors.close()
+        return f"compiled in the background, done {waited:.0f} s after the demo started"
+
+    def stop(self) -> None:
+        """End it if it still runs."""
+        if self.process.poll() is None:
+            self.process.kill()
+            self.process.wait()
+        self.errors.close()
 
 
 def compile_kernels(fixtures: Path, relight: Path, preset: Preset) -> None:

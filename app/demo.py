@@ -11,7 +11,6 @@ first step not yet done.
 from __future__ import annotations
 
 import shutil
-import subprocess
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -93,23 +92,20 @@ class KernelsAhead:
     first (an error, Ctrl-C)."""
 
     def __init__(self) -> None:
-        self.process: subprocess.Popen | None = None
-        self.started = 0.0
+        self.compiling: compile_ahead.Compiling | None = None
 
     def start(self, fixtures: Path, relight: Path, preset: Preset) -> str:
-        self.process, self.started = (
-            compile_ahead.start(fixtures, relight, preset),
-            time.perf_counter(),
-        )
+        self.compiling = compile_ahead.Compiling(fixtures, relight, preset)
         return "started"
 
     def finish(self) -> str:
-        return compile_ahead.finish(self.process, self.started)
+        if self.compiling is None:  # the demo went on from an earlier run
+            return "not compiled ahead in this run; the reconstruction compiles what it lacks"
+        return self.compiling.finish()
 
     def stop(self) -> None:
-        if self.process is not None and self.process.poll() is None:
-            self.process.kill()
-            self.process.wait()
+        if self.compiling is not None:
+            self.compiling.stop()
 
 
 def run_demo(
