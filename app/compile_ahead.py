@@ -17,15 +17,22 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import IO
 
 from evcap.recon.config import Preset
 
 
-class Compiling:
-    """The compiling process, started (its output discarded, its errors kept in a temporary
-    file, not a pipe that could fill and stall it)."""
+class KernelsAhead:
+    """The compiling process, once started (its output discarded, its errors kept in a
+    temporary file, not a pipe that could fill and stall it): started by the demo's first
+    step, waited for before the reconstruction, ended if the demo ends first."""
 
-    def __init__(self, fixtures: Path, relight: Path, preset: Preset) -> None:
+    def __init__(self) -> None:
+        self.process: subprocess.Popen | None = None
+        self.errors: IO[bytes] | None = None
+        self.started = 0.0
+
+    def start(self, fixtures: Path, relight: Path, preset: Preset) -> str:
         self.started = time.perf_counter()
         # open while the process runs: read and closed when it is waited for or ended
         self.errors = tempfile.TemporaryFile()  # noqa: SIM115
@@ -33,27 +40,30 @@ class Compiling:
         self.process = subprocess.Popen(
             [*command, preset], stdout=subprocess.DEVNULL, stderr=self.errors
         )
+        return "started"
 
     def finish(self) -> str:
         """Wait for it; what it did, in a line. A failure is said, not raised: the
         reconstruction then compiles what it needs itself."""
+        if self.process is None or self.errors is None:  # the demo went on from an earlier run
+            return "not compiled ahead in this run; the reconstruction compiles what it lacks"
         self.process.wait()
         waited = time.perf_counter() - self.started
+        self.errors.seek(0)
+        lines = self.errors.read().decode(errors="replace").strip().splitlines()
+        self.errors.close()
         if self.process.returncode != 0:
-            self.errors.seek(0)
-            lines = self.errors.read().decode(errors="replace").strip().splitlines()
-            self.errors.close()
             why = lines[-1] if lines else f"exit status {self.process.returncode}"
             return f"not compiled ahead ({why}); the reconstruction compiles them itself"
-        self.errors.close()
         return f"compiled in the background, done {waited:.0f} s after the demo started"
 
     def stop(self) -> None:
         """End it if it still runs."""
-        if self.process.poll() is None:
+        if self.process is not None and self.process.poll() is None:
             self.process.kill()
             self.process.wait()
-        self.errors.close()
+        if self.errors is not None:
+            self.errors.close()
 
 
 def compile_kernels(fixtures: Path, relight: Path, preset: Preset) -> None:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from evcap.app import compile_ahead
+from evcap.app.compile_ahead import KernelsAhead
 from evcap.app.pipeline import Pipeline, Progress, Settings, StepDefinition, Workspace
 from evcap.errors import InputError, OutputExistsError
 from evcap.recon.config import Preset
@@ -86,28 +86,6 @@ def demo_pipeline(
     return pipeline
 
 
-class KernelsAhead:
-    """The process compiling the reconstruction's kernels (app/compile_ahead.py), if started:
-    by the demo's first step, waited for before the reconstruction, ended if the demo ends
-    first (an error, Ctrl-C)."""
-
-    def __init__(self) -> None:
-        self.compiling: compile_ahead.Compiling | None = None
-
-    def start(self, fixtures: Path, relight: Path, preset: Preset) -> str:
-        self.compiling = compile_ahead.Compiling(fixtures, relight, preset)
-        return "started"
-
-    def finish(self) -> str:
-        if self.compiling is None:  # the demo went on from an earlier run
-            return "not compiled ahead in this run; the reconstruction compiles what it lacks"
-        return self.compiling.finish()
-
-    def stop(self) -> None:
-        if self.compiling is not None:
-            self.compiling.stop()
-
-
 def run_demo(
     out: str | Path,
     *,
@@ -131,7 +109,7 @@ def run_demo(
             )
     ws = demo_workspace(out)
     _prepare(ws, force)
-    ahead = KernelsAhead()
+    ahead = KernelsAhead()  # ended below if the demo ends first (an error, Ctrl-C)
     pipeline = demo_pipeline(
         out,
         preset=preset,

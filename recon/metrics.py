@@ -60,21 +60,25 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray, prefix: str) -> dict[str, fl
 BLUR_PX = 25  # the blur of blur_psnr: a Gaussian of this standard deviation, in sensor pixels
 
 
+def constant_psnr(truth: np.ndarray) -> float:
+    """The PSNR of the best single constant color for sRGB pixels [P, 3]: their mean."""
+    return psnr(np.broadcast_to(truth.mean(0), truth.shape), truth)
+
+
 def object_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict[str, float]:
     """Figures of linear renders [N, H, W, 3] on the object's pixels (``mask`` [N, H, W]):
-    sRGB PSNR and mean SSIM after a color correction fitted there, and the PSNR of the best
-    single constant color over all views (the mean of the truth's sRGB there); {} without
-    an object."""
+    sRGB PSNR as rendered, PSNR and mean SSIM after a color correction fitted there, and the
+    PSNR of the best single constant color over all views; {} without an object."""
     if not mask.any():
         return {}
     truth = srgb(gt)
     cc = fit_color_correction(pred[mask], gt[mask])
     corrected = srgb(pred * cc[:, 0] + cc[:, 1])
-    constant = truth[mask].mean(0)
     return {
+        "object_psnr": psnr(srgb(pred)[mask], truth[mask]),
         "object_psnr_cc": psnr(corrected[mask], truth[mask]),
         "object_ssim_cc": float(ssim_map(corrected, truth)[mask].mean()),
-        "object_psnr_constant": psnr(np.broadcast_to(constant, truth[mask].shape), truth[mask]),
+        "object_psnr_constant": constant_psnr(truth[mask]),
     }
 
 
@@ -168,7 +172,7 @@ def surface_metrics(
         f"{prefix}_ssim": ssim(a, b),
         f"{prefix}_psnr_cc": psnr(c[mask], b[mask]),
         f"{prefix}_ssim_cc": ssim(c, b),
-        f"{prefix}_psnr_constant": psnr(np.broadcast_to(b[mask].mean(0), b[mask].shape), b[mask]),
+        f"{prefix}_psnr_constant": constant_psnr(b[mask]),
     }
     for name, region in (regions or {}).items():
         region = region & mask

@@ -19,6 +19,7 @@ STAGE_I, STAGE_II, RUN = "stage I (radiance)", "stage II (material)", "run"
 # the figures a user is shown after a run (`evcap reconstruct`, the demo, `evcap batch`'s
 # summary), in this order; metrics.json and the report hold them all
 SHOWN = (
+    "object_psnr",
     "object_psnr_cc",
     "object_psnr_constant",
     "normal_mae_deg",
@@ -49,6 +50,7 @@ class Figures:
     are compared in sRGB; ``_cc``: after a per-channel gain and offset fitted by least squares;
     ``object_``: on the object's pixels only."""
 
+    object_psnr: float | None = _figure("object PSNR, as rendered", "dB", STAGE_I)
     object_psnr_cc: float | None = _figure("object PSNR, color-corrected", "dB", STAGE_I)
     object_psnr_constant: float | None = _figure(
         "object PSNR of the best constant color (no object)", "dB", STAGE_I

@@ -58,6 +58,7 @@ def test_the_color_correction_forgives_a_gain_and_offset(scene):
     radiance, depth = scene
     m = object_metrics(0.5 * radiance + 0.1, radiance, depth > 0)
     assert m["object_psnr_cc"] > 50
+    assert m["object_psnr"] < 25  # as rendered, the gain and offset count
 
 
 def test_the_gain_alone_forgives_a_gain_per_channel_but_not_haze(scene):
