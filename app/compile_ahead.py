@@ -7,7 +7,7 @@ reconstruction then finds them in the cache. The process reconstructs a few step
 stages of the demo's own scene on the truth's poses, in a temporary folder: the kernels
 compiled are the reconstruction's own, for the same kinds of arrays.
 
-    python -m evcap.app.compile_ahead FIXTURES RELIGHT PRESET
+    python -m evcap.app.compile_ahead FIXTURES PRESET
 """
 
 from __future__ import annotations
@@ -32,14 +32,12 @@ class KernelsAhead:
         self.errors: IO[bytes] | None = None
         self.started = 0.0
 
-    def start(self, fixtures: Path, relight: Path, preset: Preset) -> str:
+    def start(self, fixtures: Path, preset: Preset) -> str:
         self.started = time.perf_counter()
         # open while the process runs: read and closed when it is waited for or ended
         self.errors = tempfile.TemporaryFile()  # noqa: SIM115
-        command = [sys.executable, "-m", "evcap.app.compile_ahead", str(fixtures), str(relight)]
-        self.process = subprocess.Popen(
-            [*command, preset], stdout=subprocess.DEVNULL, stderr=self.errors
-        )
+        command = [sys.executable, "-m", "evcap.app.compile_ahead", str(fixtures), preset]
+        self.process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=self.errors)
         return "started"
 
     def finish(self) -> str:
@@ -66,7 +64,7 @@ class KernelsAhead:
             self.errors.close()
 
 
-def compile_kernels(fixtures: Path, relight: Path, preset: Preset) -> None:
+def compile_kernels(fixtures: Path, preset: Preset) -> None:
     """Record the demo's scene, give it the truth's poses and a calibration of the kinds
     `evcap calibrate` writes (its values do not matter here: the kernels are compiled for the
     kinds of arrays, not their values) and run both stages of the preset for a few steps,
@@ -105,10 +103,9 @@ def compile_kernels(fixtures: Path, relight: Path, preset: Preset) -> None:
             preset=preset,
             iterations=3,
             material_iterations=2,
-            relight=relight,
             refine_poses="on",
         )
 
 
 if __name__ == "__main__":
-    compile_kernels(Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3])  # type: ignore[arg-type]
+    compile_kernels(Path(sys.argv[1]), sys.argv[2])  # type: ignore[arg-type]

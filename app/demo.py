@@ -15,8 +15,6 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
-
 from evcap.app.compile_ahead import KernelsAhead
 from evcap.app.pipeline import Pipeline, Progress, Settings, StepDefinition, Workspace
 from evcap.errors import InputError, OutputExistsError
@@ -26,7 +24,6 @@ FIXTURES = Path(__file__).resolve().parent / "demo_data"  # package data: in the
 SCENE, CALIBRATION = "demo-scene", "demo-calibration"  # the captures
 SCENE_FILE, CALIBRATION_FILE = "scene.h5", "calibration.h5"  # their recordings, in DIR
 PRESETS: tuple[Preset, ...] = ("small", "fast")  # recon's presets that a CPU runs in minutes
-RELIGHT = "relight.png"  # the new light the demo's views are also lit by
 EARLIER_STATE = "demo.json"  # the state file of the demo before it ran on the pipeline
 
 
@@ -50,7 +47,7 @@ def demo_pipeline(
     the reconstruction."""
     ws = demo_workspace(out)
     fixtures = Path(fixtures) if fixtures is not None else FIXTURES
-    settings = Settings(preset=preset, relight=RELIGHT)
+    settings = Settings(preset=preset)
     pipeline = Pipeline(
         ws, settings, say=say, progress=progress, hint="pass --force to start the demo over"
     )
@@ -58,7 +55,7 @@ def demo_pipeline(
     pipeline.add(
         StepDefinition(
             "compile the reconstruction's kernels (a second process, beside the next steps)",
-            lambda: ahead.start(fixtures, ws.root / RELIGHT, preset),
+            lambda: ahead.start(fixtures, preset),
             lambda: True,
         ),
         before="calibrate",
@@ -118,8 +115,6 @@ def run_demo(
         progress=progress or progress_bar,
         ahead=ahead,
     )
-    if not (ws.root / RELIGHT).exists():
-        write_relight_environment(ws.root / RELIGHT)
     started = time.perf_counter()
     try:
         pipeline.run()
@@ -193,16 +188,3 @@ def _register(truth_file: Path, session: Path) -> str:
         f"against the truth: rotation {errors['rotation_median_deg']:.2f} deg, translation "
         f"{errors['translation_median_pct']:.2f} % of the path (medians)"
     )
-
-
-def write_relight_environment(path: Path, height: int = 64) -> None:
-    """A latitude-longitude sky for the relit views: a low warm sun over a dim blue sky
-    (z up), unlike the scene's own light."""
-    from evcap.recon.export import write_image
-
-    elevation = (0.5 - (np.arange(height) + 0.5) / height)[:, None] * np.pi
-    azimuth = ((np.arange(2 * height) + 0.5) / height)[None, :] * np.pi
-    to_sun = np.cos(elevation) * np.cos(azimuth) * np.cos(0.3) + np.sin(elevation) * np.sin(0.3)
-    glow = np.clip(to_sun, 0, 1) ** 64
-    sky = np.where(elevation[..., None] > 0, [0.25, 0.35, 0.6], [0.15, 0.12, 0.1])
-    write_image(np.clip(sky + glow[..., None] * [1.0, 0.7, 0.4], 0, 1), path)

@@ -338,9 +338,9 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def generate_demo(out: Path, keep: Path | None = None) -> list[str]:
-    """Simulate the demo's scenes and write their fixtures (and demo-scene's truth.h5);
-    ``keep``: a folder to keep the simulated sessions in."""
+def generate_demo(out: Path, keep: Path | None = None, names: list[str] | None = None) -> list[str]:
+    """Simulate the demo's scenes (``names``: those of DEMO, else all) and write their
+    fixtures (and demo-scene's truth.h5); ``keep``: a folder to keep the simulated sessions in."""
     from evcap.sim.fixture import write_session_fixture
     from evcap.sim.scene import load_scene
     from evcap.sim.simulate import simulate
@@ -351,6 +351,8 @@ def generate_demo(out: Path, keep: Path | None = None) -> list[str]:
         where = keep or Path(tmp)
         where.mkdir(parents=True, exist_ok=True)
         for name, (scene_file, description) in DEMO.items():
+            if names and name not in names:
+                continue
             scene_path = SCENES / scene_file
             session = where / f"{name}.h5"
             start = time.perf_counter()
@@ -425,8 +427,11 @@ def main() -> int:
     )
     parser.add_argument(
         "--demo",
-        action="store_true",
-        help="simulate and write the demo's fixtures (demo-scene, demo-calibration): minutes",
+        nargs="*",
+        choices=list(DEMO),
+        metavar="NAME",
+        help="simulate and write the demo's fixtures (demo-scene, demo-calibration; or those "
+        "named): minutes",
     )
     parser.add_argument(
         "--keep-sessions",
@@ -435,8 +440,8 @@ def main() -> int:
         help="--demo: keep the simulated sessions (with their ground truth) in DIR",
     )
     args = parser.parse_args()
-    if args.demo:
-        for name in generate_demo(DEMO_DATA, args.keep_sessions):
+    if args.demo is not None:
+        for name in generate_demo(DEMO_DATA, args.keep_sessions, args.demo):
             print(f"wrote {DEMO_DATA / name}")
         return 0
     if not args.check:

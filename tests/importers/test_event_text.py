@@ -318,7 +318,7 @@ def test_a_simulated_recording_as_an_ecd_sequence(tmp_path):
     info = evcap("info", str(session))
     assert info.returncode == 0, info.stderr
     assert "Color-DAVIS346 (inferred from the coordinates)" in info.stdout
-    assert "382,414" in info.stdout
+    assert "384,359" in info.stdout
     poses = evcap("poses", str(session))
     assert poses.returncode == 0, poses.stderr
     assert "frames registered" in poses.stdout
