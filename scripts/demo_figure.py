@@ -1,6 +1,7 @@
 """The README's figure of the demo: each held-out view's truth beside what the demo recovered
 (radiance after the color correction object_psnr_cc uses, normals, depth; stage II's base
-color), drawn as the report draws them.
+color and the view relit under the truth's second light, as written), drawn as the report
+draws them.
 
     .venv/bin/python scripts/demo_figure.py evcap-demo docs/figures/demo.png
 """
@@ -41,6 +42,8 @@ def main(demo: Path, out: Path) -> None:
                 depth_image(stage_one["depth"][i], lo, hi),
                 srgb8(truth.base_color[i]),
                 srgb8(stage_two["base_color"][i]),
+                srgb8(truth.relit_radiance[i]),
+                np.asarray(Image.open(folder.view_image("relit", "test", i, "radiance")))[..., :3],
             ]
         )
     grid = np.concatenate([np.concatenate(r, 1) for r in rows], 0)
