@@ -139,6 +139,7 @@ def reconstruct(
     seed: int = 0,
     zero_events: ZeroEvents | None = None,
     radiance_settings: dict | None = None,
+    material_settings: dict | None = None,
     visibility: EffectMode | None = None,
     indirect: EffectMode | None = None,
     ablate: tuple[Ablation, ...] = (),
@@ -150,8 +151,9 @@ def reconstruct(
     say: Callable[[str], None] = lambda line: None,
     progress: Callable[[int, int, str], None] | None = None,
 ) -> ReconstructionResult:
-    """Run the reconstruction; returns what it wrote to OUT/metrics.json. ``radiance_settings``:
-    stage I's (RadianceConfig's fields) over the preset's. With ``resume``, a
+    """Run the reconstruction; returns what it wrote to OUT/metrics.json. ``radiance_settings``,
+    ``material_settings``: stage I's and stage II's (RadianceConfig's, MaterialConfig's fields)
+    over the preset's. With ``resume``, a
     stage interrupted in OUT with the same session and settings goes on from where it
     stopped; ``overwrite`` lets a finished (or differently started) one be replaced.
     ``refine_poses``: stage I refines the trajectory (auto: when evcap estimated it) and writes
@@ -165,9 +167,9 @@ def reconstruct(
     runs = _trainings(stage)
     fits_radiance, fits_material = "radiance" in runs, "material" in runs
     out = ReconstructionFolder(out)
-    mconfig = cfg.material_preset(
-        preset, iterations=material_iterations, visibility=visibility, indirect=indirect
-    )
+    named = {"iterations": material_iterations, "visibility": visibility, "indirect": indirect}
+    named = {k: v for k, v in named.items() if v is not None}
+    mconfig = cfg.material_preset(preset, **{**(material_settings or {}), **named})
     environment = read_environment(relight) if relight is not None else None
     device = pick_device(device)
     backend = pick_backend(backend, device)
