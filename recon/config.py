@@ -20,7 +20,6 @@ EffectMode = Literal["auto", "on", "off"]  # stage II's visibility and indirect 
 Ablation = Literal["anchor", "tv", "distill"]  # stage II's terms that can be left out
 RefinePoses = Literal["auto", "on", "off"]  # auto: when the poses were estimated by evcap
 NormalsFrom = Literal["planes", "gaussians"]  # stage II's starting normals
-BaseStart = Literal["shading", "constant"]  # stage II's starting base color
 STAGES: tuple[Stage, ...] = get_args(Stage)
 PRESET_NAMES: tuple[Preset, ...] = get_args(Preset)
 DEVICES: tuple[Device, ...] = get_args(Device)
@@ -145,12 +144,6 @@ class MaterialConfig:
     # the normals stage II starts from: "planes" (through each Gaussian's neighbours) or
     # "gaussians" (each Gaussian's flattest axis, what stage I's normal loss trained)
     normals_from: NormalsFrom = "planes"
-    # the base color's start: "shading" (stage I's radiance over the diffuse shading under the
-    # start light) or "constant" (0.5: the light and the base color then part from the fit)
-    base_start: BaseStart = "shading"
-    # the light learnt first: for this fraction of the run the base color and roughness stay
-    # at their start and only the light (and the normals, the indirect light) follow the fit
-    light_first: float = 0.0
     # neighbouring Gaussians of one chromaticity share a base color (not the method's: the
     # intrinsic-image prior that shading changes brightness, materials change color): the mean
     # |a_i - a_j|_1 over each Gaussian's albedo_neighbours nearest, weighted by
@@ -202,11 +195,8 @@ def material_preset(name: Preset, **overrides: object) -> MaterialConfig:
     for effect in ("visibility", "indirect"):
         if getattr(config, effect) not in EFFECT_MODES:
             raise InputError(f'{effect} must be "auto", "on" or "off"')
-    if not 0 <= config.light_first < 1:
-        raise InputError("light_first is a fraction of the run, in [0, 1)")
-    for name, kind in (("normals_from", NormalsFrom), ("base_start", BaseStart)):
-        if getattr(config, name) not in get_args(kind):
-            raise InputError(f"{name} must be one of {', '.join(get_args(kind))}")
+    if config.normals_from not in get_args(NormalsFrom):
+        raise InputError(f"normals_from must be one of {', '.join(get_args(NormalsFrom))}")
     return config
 
 

@@ -213,7 +213,7 @@ def new_material_field(
     own (config.normals_from; facing the cameras), visibility baked when the scene has
     occluders (and, with indirect light, which surface each Gaussian sees where its light is
     blocked), base color such that the diffuse shading under the stage-I background as light
-    gives the stage-I radiance (or 0.5: config.base_start)."""
+    gives the stage-I radiance."""
     g = radiance.gaussians
     light = Background.from_faces(radiance.background.faces.data.cpu())
     with torch.no_grad():
@@ -242,10 +242,8 @@ def new_material_field(
         field.roughness_logits.fill_(
             _logit(torch.tensor((0.6 - MIN_ROUGHNESS) / (1 - MIN_ROUGHNESS)))
         )
-        if config.base_start == "shading":
-            color, _ = field.shaded(cams)
-            start = (0.5 * target / color.clamp(min=1e-6)).clamp(0.03, 0.97)
-            field.base_logits.copy_(_logit(start))
+        color, _ = field.shaded(cams)
+        field.base_logits.copy_(_logit((0.5 * target / color.clamp(min=1e-6)).clamp(0.03, 0.97)))
     return field
 
 
@@ -496,8 +494,6 @@ def train_material(
                 terms["albedo"] = albedo.detach()
             with timer("backward"):
                 total.backward()
-            if step <= config.light_first * config.iterations:
-                field.base_logits.grad, field.roughness_logits.grad = None, None
             with timer("optimizer"):
                 optimizer.step()
                 optimizer.zero_grad(set_to_none=True)

@@ -365,5 +365,3 @@ def test_stage_two_settings_are_checked():
         cfg.material_preset("fast", albedo_wieght=1.0)
     with pytest.raises(InputError, match="normals_from"):
         cfg.material_preset("fast", normals_from="depth")
-    with pytest.raises(InputError, match="light_first"):
-        cfg.material_preset("fast", light_first=1.0)
