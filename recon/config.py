@@ -144,13 +144,6 @@ class MaterialConfig:
     # the normals stage II starts from: "planes" (through each Gaussian's neighbours) or
     # "gaussians" (each Gaussian's flattest axis, what stage I's normal loss trained)
     normals_from: NormalsFrom = "planes"
-    # neighbouring Gaussians of one chromaticity share a base color (not the method's: the
-    # intrinsic-image prior that shading changes brightness, materials change color): the mean
-    # |a_i - a_j|_1 over each Gaussian's albedo_neighbours nearest, weighted by
-    # exp(-|chroma_i - chroma_j|^2 / 2 sigma^2) of stage I's radiance
-    albedo_weight: float = 0.0
-    albedo_neighbours: int = 8
-    albedo_sigma: float = 0.03
     edge_slice_ms: float = 10.0  # the events warped into each edge map
     edge_frames: int = 48  # views with an edge map; the training frames of stage II
     lr_base_color: float = 0.05

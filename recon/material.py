@@ -314,38 +314,6 @@ def occluding_outlines(depth: torch.Tensor, opaque: torch.Tensor) -> float:
 
 
 @dataclass
-class AlbedoPairs:
-    """Neighbouring Gaussians [P] and how likely they are of one material [P]."""
-
-    first: torch.Tensor
-    second: torch.Tensor
-    weight: torch.Tensor
-
-    def loss(self, base_color: torch.Tensor) -> torch.Tensor:
-        step = (base_color[self.first] - base_color[self.second]).abs().sum(1)
-        return (self.weight * step).sum() / self.weight.sum().clamp(min=1e-12)
-
-
-@torch.no_grad()
-def albedo_pairs(
-    means: torch.Tensor, opacity: torch.Tensor, radiance: torch.Tensor, k: int, sigma: float
-) -> AlbedoPairs:
-    """Each visible Gaussian and its k nearest visible ones, weighted by how alike their
-    radiance's chromaticity is (``radiance`` [N, 3]: stage I's)."""
-    kept = torch.nonzero(opacity > NEIGHBOUR_OPACITY).squeeze(1)
-    k = min(k, len(kept) - 1)
-    if k < 1:
-        empty = means.new_zeros(0, dtype=torch.long)
-        return AlbedoPairs(empty, empty, means.new_zeros(0))
-    _, found = nearest(means[kept], means[kept], k + 1)
-    second = kept[torch.from_numpy(found[:, 1:]).to(means.device)].reshape(-1)
-    first = kept[:, None].expand(-1, k).reshape(-1)
-    chroma = radiance / radiance.sum(1, keepdim=True).clamp(min=1e-6)
-    apart = ((chroma[first] - chroma[second]) ** 2).sum(1)
-    return AlbedoPairs(first, second, torch.exp(-apart / (2 * sigma**2)))
-
-
-@dataclass
 class MaterialLog:
     step: int
     loss: float
@@ -354,7 +322,6 @@ class MaterialLog:
     anchor: float
     tv: float
     seconds: float
-    albedo: float = 0.0
 
 
 @dataclass
@@ -426,14 +393,6 @@ def train_material(
                 f"the saved stage-II state does not fit this version of evcap ({found}); "
                 "pass --force to start stage II over"
             ) from e
-    pairs = None
-    if config.albedo_weight > 0:
-        g = radiance.gaussians
-        cams = data.track.at(data.windows.frame_times)[:, :3, 3].mean(0)
-        seen = g.radiance(torch.as_tensor(cams, dtype=torch.float32, device=g.means.device), 0)
-        pairs = albedo_pairs(
-            g.means, g.opacities, seen, config.albedo_neighbours, config.albedo_sigma
-        )
     frames_all = edge_frames(data, config.edge_frames)
     # the TV's weights exp(-beta M_edge) of each training view, kept instead of the maps
     edges = edge_maps(session, data, frames_all, config.edge_slice_ms, device)
@@ -488,10 +447,6 @@ def train_material(
             total, terms = _losses(
                 field, data, stage1, config, frames, distill_target, weights, ablate, timer
             )
-            if pairs is not None:
-                albedo = pairs.loss(field.base_color)
-                total = total + config.albedo_weight * albedo
-                terms["albedo"] = albedo.detach()
             with timer("backward"):
                 total.backward()
             with timer("optimizer"):

@@ -344,24 +344,8 @@ def test_relighting_scales_the_light_from_other_surfaces_with_the_light():
     assert torch.allclose(doubled, 2 * before, rtol=1e-4)
 
 
-def test_albedo_pairs_join_neighbours_of_one_chromaticity_only():
-    """Two touching patches, orange and cream, each shaded from dark to bright: pairs inside
-    a patch count fully whatever the brightness, pairs across the border hardly at all."""
-    x = torch.linspace(-1, 1, 40)
-    means = torch.stack([x, torch.zeros(40), torch.zeros(40)], 1)
-    shade = torch.linspace(0.3, 1.0, 40)[:, None]
-    orange, cream = torch.tensor([0.8, 0.25, 0.1]), torch.tensor([0.9, 0.85, 0.6])
-    color = torch.where(x[:, None] < 0, orange, cream)
-    pairs = material.albedo_pairs(means, torch.ones(40), color * shade, k=4, sigma=0.03)
-    across = (x[pairs.first] < 0) != (x[pairs.second] < 0)
-    assert across.any() and float(pairs.weight[across].max()) < 1e-6
-    assert float(pairs.weight[~across].min()) > 0.99
-    # the base color that is one color per patch costs nothing; the shaded one does
-    assert float(pairs.loss(color)) < 1e-6 < float(pairs.loss(color * shade))
-
-
 def test_stage_two_settings_are_checked():
-    with pytest.raises(InputError, match="albedo_wieght"):
-        cfg.material_preset("fast", albedo_wieght=1.0)
+    with pytest.raises(InputError, match="normals_form"):
+        cfg.material_preset("fast", normals_form="planes")
     with pytest.raises(InputError, match="normals_from"):
         cfg.material_preset("fast", normals_from="depth")

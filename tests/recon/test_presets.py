@@ -49,7 +49,7 @@ def test_paper_is_the_methods_stage_two(method_summary):
     assert (paper.edge_beta, paper.tv_normal_weight) == (beta, lambda_n)
     assert paper.iterations == number(method, r"Stage II ([\d,]+) more")
     assert paper.lr_normals > 0  # the normals are learnt (fast freezes them)
-    assert paper.albedo_weight == 0  # and nothing the method does not have
+    assert paper.normals_from == "planes"  # and the normals start as they always did
 
 
 def test_the_simulators_threshold_is_the_methods(method_summary):

@@ -136,7 +136,6 @@ def test_writes_every_output(color_result):
         "distill",
         "anchor",
         "tv",
-        "albedo",
         "seconds",
     }
     # the accuracy-versus-time curve: held-out PSNR at evenly spaced steps, the last one's
