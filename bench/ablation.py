@@ -1,9 +1,11 @@
-"""The method's ablations of stage II on the simulator's example scenes: the full model, then
-each of its terms and effects left out (brightness anchor, edge-guided TV, radiance
-distillation, visibility, indirect light). Stage I is fitted once per scene and shared, so the
-rows differ by stage II alone. Base color is also measured inside the shadows and the color
-bleeding that the simulator's ground truth marks. Writes a table (JSON and Markdown) beside
-the method's published means.
+"""The method's ablations on the simulator's example scenes: the full model, then each of its
+terms and effects left out (brightness anchor, edge-guided TV, radiance distillation, stage I's
+normal loss, visibility, indirect light). Stage I is fitted once per scene and shared, so those
+rows differ by stage II alone; the anchor (in both stages) and the normal loss (stage I's) fit a
+stage I of their own. Each row's change against the full model is set beside the method's own
+change (its Tables 2, 4 and 8, summed up in method.md). Base color is also measured inside
+the shadows and the color bleeding that the simulator's ground truth marks. Writes a table
+(JSON and Markdown) beside the method's published means.
 
 With ``--geometry truth`` stage I does not learn the geometry: it starts on the truth's
 surfaces (flat, opaque Gaussians sampled over the scene's meshes) and learns only their
@@ -16,7 +18,7 @@ terms and effects can do when the light is right too.
     .venv/bin/python bench/ablation.py [--scenes single_object multi_object] [--preset tiny]
         [--variants full "no visibility" ...] [--material-iterations N] [--device cpu]
         [--geometry stage-one|truth] [--iterations N] [--effects auto|on] [--work DIR]
-        [--light learnt|truth]
+        [--light learnt|truth] [--seed N] [--stage-one KEPT_STAGE_ONE_FOLDER]
 """
 
 from __future__ import annotations
@@ -36,19 +38,21 @@ from _common import RESULTS, machine, scene_file, scene_label, session_of
 
 import evcap.recon.material as material
 import evcap.recon.radiance as radiance
-from evcap.recon.gaussians import START_VALUE, Background, Gaussians
+from evcap.recon.gaussians import Background, Gaussians
 from evcap.recon.reconstruct import reconstruct
-from evcap.recon.sh import C0
 from evcap.sim.lighting import Environment
-from evcap.sim.meshes import build_mesh
+from evcap.sim.meshes import build_mesh, sample_surface
 from evcap.sim.scene import load_scene
 
-# name -> reconstruct() settings of stage II
+# name -> reconstruct() settings of stage II, and stage I's own where the variant changes it
+# (it then fits a stage I of its own; the others share one)
 VARIANTS = {
     "full": {},
-    "no anchor": {"ablate": ("anchor",)},
+    # the method's brightness anchor holds both stages
+    "no anchor": {"ablate": ("anchor",), "stage_one": {"anchor_weight": 0.0}},
     "no edge TV": {"ablate": ("tv",)},
     "no distillation": {"ablate": ("distill",)},
+    "no normal loss": {"stage_one": {"normal_weight": 0.0}},
     # indirect light stands for what the occluders hide: without visibility it goes too
     "no visibility": {"visibility": "off", "indirect": "off"},
     "no indirect": {"indirect": "off"},
@@ -60,7 +64,14 @@ PUBLISHED = {
     "no anchor": {"normal_mae_deg": 36.87, "base_color_psnr": 19.18, "render_psnr": 20.51},
     "no edge TV": {"normal_mae_deg": 35.70, "base_color_psnr": 20.69, "render_psnr": 21.52},
     "no distillation": {"render_psnr": 17.22},
+    "no normal loss": {"normal_mae_deg": 33.45, "render_psnr": 21.98},
 }
+# ours beside the method's: (our column, the method's, which way is better)
+COMPARED = (
+    ("normal_mae_deg", "normal_mae_deg", -1),
+    ("base_color_psnr_cc", "base_color_psnr", 1),
+    ("pbr_render_psnr_cc", "render_psnr", 1),
+)
 COLUMNS = (
     "scene",
     "variant",
@@ -83,43 +94,11 @@ TRUTH_GAUSSIANS = 20_000
 TRUTH_OPACITY = 0.95
 
 
-def surface_samples(scene: str, count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """``count`` points spread over the scene's surfaces by area, with the faces' normals."""
-    mesh, _, _ = build_mesh(load_scene(scene_file(scene)))
-    a, b, c = (mesh.vertices[mesh.faces[:, i]] for i in range(3))
-    cross = np.cross(b - a, c - a)
-    area = np.linalg.norm(cross, axis=1) / 2
-    rng = np.random.default_rng(seed)
-    face = rng.choice(len(area), count, p=area / area.sum())
-    u, v = rng.random((2, count))
-    flip = u + v > 1  # fold the square's far half back into the triangle
-    u, v = np.where(flip, 1 - u, u), np.where(flip, 1 - v, v)
-    points = a[face] + u[:, None] * (b - a)[face] + v[:, None] * (c - a)[face]
-    normals = cross[face] / np.maximum(2 * area[face], 1e-12)[:, None]
-    return points, normals
-
-
 def truth_gaussians(scene: str, sh_degree: int) -> Gaussians:
-    """Flat opaque discs on the truth's surfaces, facing along the surface normal, each as wide
-    as the mean spacing of the samples, mid-gray."""
-    points, normals = surface_samples(scene, TRUTH_GAUSSIANS)
+    """Flat opaque discs sampled over the truth's surfaces, mid-gray."""
     mesh, _, _ = build_mesh(load_scene(scene_file(scene)))
-    a, b, c = (mesh.vertices[mesh.faces[:, i]] for i in range(3))
-    spacing = np.sqrt(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum() / 2 / len(points))
-    n = np.where(normals[:, 2:] < 0, -normals, normals)  # a disc is two-sided
-    # the rotation taking +z to n: (w, x, y, z) = normalise(1 + n.z, z x n)
-    quats = np.stack([1 + n[:, 2], -n[:, 1], n[:, 0], np.zeros(len(n))], 1)
-    count = len(points)
-    log_scales = np.log([0.8 * spacing, 0.8 * spacing, 0.02 * spacing])
-    logit = np.log(TRUTH_OPACITY / (1 - TRUTH_OPACITY))
-    return Gaussians(
-        torch.as_tensor(points, dtype=torch.float32),
-        torch.as_tensor(np.tile(log_scales, (count, 1)), dtype=torch.float32),
-        torch.as_tensor(quats / np.linalg.norm(quats, axis=1, keepdims=True), dtype=torch.float32),
-        torch.full((count,), float(logit)),
-        torch.full((count, 1, 3), START_VALUE / C0),
-        torch.zeros(count, (sh_degree + 1) ** 2 - 1, 3),
-    )
+    points, normals, spacing = sample_surface(mesh, TRUTH_GAUSSIANS)
+    return Gaussians.on_surface(points, normals, spacing, sh_degree, TRUTH_OPACITY)
 
 
 @contextmanager
@@ -186,6 +165,33 @@ def cell(v: object) -> str:
     return "" if v is None else str(v)
 
 
+def change(ours: float | None, full: float | None, better: int) -> str:
+    """How much a variant moved a figure against the full model, signed so that + is better."""
+    if ours is None or full is None:
+        return "-"
+    return f"{better * (ours - full):+.2f}"
+
+
+def directions(rows: list[dict]) -> list[str]:
+    """Markdown rows: each variant's change against its scene's full model beside the
+    method's change against its full model."""
+    heads = ["normal MAE deg", "base color dB", "render dB"]
+    lines = ["| scene | variant | " + " | ".join(heads) + " |", "|---|---|---|---|---|"]
+    full = {r["scene"]: r for r in rows if r["variant"] == "full"}
+    method = PUBLISHED["full"]
+    for r in rows:
+        if r["variant"] == "full" or r["scene"] not in full:
+            continue
+        theirs = PUBLISHED.get(r["variant"], {})
+        cells = [
+            f"{change(r.get(o), full[r['scene']].get(o), b)} / "
+            f"{change(theirs.get(m), method.get(m), b)}"
+            for o, m, b in COMPARED
+        ]
+        lines.append(f"| {r['scene']} | {r['variant']} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--scenes", nargs="+", default=["single_object", "multi_object"])
@@ -213,42 +219,60 @@ def main(argv: list[str] | None = None) -> None:
         help="stage II learns the light, or holds it at the truth's",
     )
     parser.add_argument("--work", type=Path, help="keep the runs in this folder (default: none)")
+    parser.add_argument("--seed", type=int, default=0, help="both stages' seed")
+    parser.add_argument(
+        "--stage-one",
+        type=Path,
+        help="a kept stage I of the one scene (a reconstruction folder made with --preset and "
+        "--seed) shared by the variants instead of fitting one",
+    )
     args = parser.parse_args(argv)
+    if args.stage_one is not None and len(args.scenes) != 1:
+        parser.error("--stage-one is the stage I of one scene: give one scene")
     rows, stage_one = [], {}
     forced = {"visibility": "on", "indirect": "on"} if args.effects == "on" else {}
+    truth = args.geometry == "truth"
+
+    def fit_stage_one(scene: str, session: Path, out: Path, settings: dict) -> dict:
+        started = time.perf_counter()
+        with starting_on_truth(scene) if truth else nullcontext():
+            first = reconstruct(
+                session,
+                out,
+                preset=args.preset,
+                device=args.device,
+                stage="radiance",
+                iterations=args.iterations,
+                seed=args.seed,
+                radiance_settings={**(TRUTH_GEOMETRY if truth else {}), **settings},
+            )
+        return {**first.figures.measured(), "seconds": time.perf_counter() - started}
+
     with tempfile.TemporaryDirectory() as scratch:
         tmp = args.work or scratch
         for scene in args.scenes:
             session = session_of(scene)
             label = scene_label(scene)
             base = Path(tmp) / label
-            started = time.perf_counter()
-            truth = args.geometry == "truth"
-            with starting_on_truth(scene) if truth else nullcontext():
-                first = reconstruct(
-                    session,
-                    base,
-                    preset=args.preset,
-                    device=args.device,
-                    stage="radiance",
-                    iterations=args.iterations,
-                    radiance_settings=TRUTH_GEOMETRY if truth else None,
-                )
-            stage_one[label] = {
-                "object_psnr_cc": first.figures.object_psnr_cc,
-                "object_psnr_constant": first.figures.object_psnr_constant,
-                "render_psnr_cc": first.figures.render_psnr_cc,
-                "normal_mae_deg": first.figures.normal_mae_deg,
-                "seconds": time.perf_counter() - started,
-            }
+            if args.stage_one is not None:
+                kept_only = shutil.ignore_patterns("renders", "material.pt")
+                shutil.copytree(args.stage_one, base, ignore=kept_only)
+                kept = json.loads((base / "metrics.json").read_text())
+                stage_one[label] = {k: v for k, v in kept.items() if k != "training_log"}
+            else:
+                stage_one[label] = fit_stage_one(scene, session, base, {})
             full_effects = None
             for name in args.variants:
-                settings = VARIANTS[name]
+                settings = dict(VARIANTS[name])
+                own = settings.pop("stage_one", None)
                 effect = SWITCHES_EFFECT.get(name)
                 if effect and full_effects is not None and not full_effects[effect]:
                     continue  # the full model left it out already on this scene
                 out = Path(tmp) / f"{label}-{name.replace(' ', '-')}"
-                shutil.copytree(base, out)
+                if own is None:
+                    shutil.copytree(base, out, ignore=shutil.ignore_patterns("renders"))
+                else:
+                    stage_one[f"{label} {name}"] = fit_stage_one(scene, session, out, own)
                 with truth_light(scene) if args.light == "truth" else nullcontext():
                     result = reconstruct(
                         session,
@@ -257,6 +281,7 @@ def main(argv: list[str] | None = None) -> None:
                         device=args.device,
                         stage="material",
                         material_iterations=args.material_iterations,
+                        seed=args.seed,
                         overwrite=True,
                         **{**forced, **settings},
                     )
@@ -274,6 +299,8 @@ def main(argv: list[str] | None = None) -> None:
     for name, p in PUBLISHED.items():
         values = [p.get(k) for k in ("normal_mae_deg", "base_color_psnr", "render_psnr")]
         lines.append(f"| {name} | " + " | ".join(cell(v) for v in values) + " |")
+    lines += ["", "Each variant against the full model, here / the method's (+ better):", ""]
+    lines += directions(rows)
     table = "\n".join(lines) + "\n"
     RESULTS.mkdir(exist_ok=True)
     name = "ablation" if args.preset == "tiny" else f"ablation_{args.preset}"

@@ -61,6 +61,32 @@ class Gaussians(torch.nn.Module):
         )
 
     @classmethod
+    def on_surface(
+        cls,
+        points: np.ndarray,
+        normals: np.ndarray,
+        spacing: float,
+        sh_degree: int,
+        opacity: float = 0.95,
+    ) -> Gaussians:
+        """Flat, nearly opaque discs at surface ``points`` facing along their ``normals``, each
+        as wide as the points' ``spacing``, mid-gray: a known surface to learn radiance on."""
+        n = np.where(normals[:, 2:] < 0, -normals, normals)  # a disc is two-sided
+        # the rotation taking +z to n: (w, x, y, z) = normalise(1 + n.z, z x n)
+        quats = np.stack([1 + n[:, 2], -n[:, 1], n[:, 0], np.zeros(len(n))], 1)
+        quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+        count = len(points)
+        log_scales = np.log([0.8 * spacing, 0.8 * spacing, 0.02 * spacing])
+        return cls(
+            torch.as_tensor(points, dtype=torch.float32),
+            torch.as_tensor(np.tile(log_scales, (count, 1)), dtype=torch.float32),
+            torch.as_tensor(quats, dtype=torch.float32),
+            torch.full((count,), math.log(opacity / (1 - opacity))),
+            torch.full((count, 1, 3), START_VALUE / C0),
+            torch.zeros(count, (sh_degree + 1) ** 2 - 1, 3),
+        )
+
+    @classmethod
     def from_state(cls, state: dict[str, torch.Tensor]) -> Gaussians:
         """Gaussians from a state_dict (a checkpoint's)."""
         return cls(*(state[k].clone() for k in PARAMS))

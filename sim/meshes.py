@@ -305,6 +305,22 @@ def object_mesh(obj: SceneObject) -> tuple[Mesh, dict | None]:
     return m.transformed(rotation, center), extra
 
 
+def sample_surface(mesh: Mesh, count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, float]:
+    """``count`` points spread over the mesh by area, each with its face's normal [count, 3],
+    and their mean spacing (the side of the square each point stands for)."""
+    a, b, c = (mesh.vertices[mesh.faces[:, i]] for i in range(3))
+    cross = np.cross(b - a, c - a)
+    area = np.linalg.norm(cross, axis=1) / 2
+    rng = np.random.default_rng(seed)
+    face = rng.choice(len(area), count, p=area / area.sum())
+    u, v = rng.random((2, count))
+    flip = u + v > 1  # fold the square's far half back into the triangle
+    u, v = np.where(flip, 1 - u, u), np.where(flip, 1 - v, v)
+    points = a[face] + u[:, None] * (b - a)[face] + v[:, None] * (c - a)[face]
+    normals = cross[face] / np.maximum(2 * area[face], 1e-12)[:, None]
+    return points, normals, float(np.sqrt(area.sum() / count))
+
+
 def build_mesh(scene: Scene) -> tuple[Mesh, list[str], list[dict | None]]:
     """All objects in one mesh; the material names (indexed by Mesh.material); per object, the
     ChArUco board definition (with its pose) or None."""
