@@ -7,11 +7,13 @@ that learns the geometry too recovers none of it, and the test is of stage II.""
 
 import numpy as np
 import pytest
+import torch
 
 from evcap.recon import radiance
 from evcap.recon.gaussians import Background, Gaussians
+from evcap.recon.rasterize import gaussian_normals
 from evcap.recon.reconstruct import reconstruct
-from evcap.sim.meshes import build_mesh, sample_surface
+from evcap.sim.meshes import build_mesh, sample_surface, sphere
 from evcap.sim.scene import load_scene
 from evcap.sim.simulate import simulate
 
@@ -61,6 +63,19 @@ fps = 10
 test_views = 2
 """
 SURFACE_GAUSSIANS = 4000
+
+
+def test_gaussians_on_a_sampled_sphere_lie_on_it_and_face_out():
+    points, normals, spacing = sample_surface(sphere(), 2000, seed=1)
+    assert np.linalg.norm(points, axis=1) == pytest.approx(1.0, abs=0.01)
+    assert (normals * points).sum(1) == pytest.approx(1.0, abs=0.01)
+    assert spacing == pytest.approx(np.sqrt(4 * np.pi / 2000), rel=0.02)
+    g = Gaussians.on_surface(points, normals, spacing, sh_degree=1)
+    with torch.no_grad():
+        facing = (gaussian_normals(g.quats, g.scales) * torch.as_tensor(normals).float()).sum(1)
+        opacity = float(g.opacities.min())
+    assert facing.abs().numpy() == pytest.approx(1.0, abs=1e-5)  # a disc has two sides
+    assert opacity == pytest.approx(0.95)
 
 
 @pytest.fixture(scope="module")
