@@ -40,6 +40,7 @@ import evcap.recon.material as material
 import evcap.recon.radiance as radiance
 from evcap.recon.gaussians import Background, Gaussians
 from evcap.recon.reconstruct import reconstruct
+from evcap.records.reconstruction_folder import RENDERS, ReconstructionFolder
 from evcap.sim.lighting import Environment
 from evcap.sim.meshes import build_mesh, sample_surface
 from evcap.sim.scene import load_scene
@@ -255,10 +256,11 @@ def main(argv: list[str] | None = None) -> None:
             label = scene_label(scene)
             base = Path(tmp) / label
             if args.stage_one is not None:
-                kept_only = shutil.ignore_patterns("renders", "material.pt")
-                shutil.copytree(args.stage_one, base, ignore=kept_only)
-                kept = json.loads((base / "metrics.json").read_text())
-                stage_one[label] = {k: v for k, v in kept.items() if k != "training_log"}
+                kept = ReconstructionFolder(args.stage_one)
+                stage_two = kept.checkpoint("material").name
+                shutil.copytree(kept.root, base, ignore=shutil.ignore_patterns(RENDERS, stage_two))
+                first = ReconstructionFolder(base).read_result()
+                stage_one[label] = first.figures.measured()
             else:
                 stage_one[label] = fit_stage_one(scene, session, base, {})
             full_effects = None
@@ -270,7 +272,7 @@ def main(argv: list[str] | None = None) -> None:
                     continue  # the full model left it out already on this scene
                 out = Path(tmp) / f"{label}-{name.replace(' ', '-')}"
                 if own is None:
-                    shutil.copytree(base, out, ignore=shutil.ignore_patterns("renders"))
+                    shutil.copytree(base, out, ignore=shutil.ignore_patterns(RENDERS))
                 else:
                     stage_one[f"{label} {name}"] = fit_stage_one(scene, session, out, own)
                 with truth_light(scene) if args.light == "truth" else nullcontext():
