@@ -34,7 +34,7 @@ def session(scene, tmp_path_factory):
 # and paper_table have tests of their own below.
 TINY = {
     "ablation": ["--scenes", "{session}", "--iterations", "5", "--material-iterations", "2"]
-    + ["--variants", "full", "no edge TV"],
+    + ["--variants", "full", "no edge TV", "no normal loss"],
     "batch": ["--recordings", "1", "--scene", "{scene}", "--ray-workers"],
     "calibration": ["--scene", "{board}", "--board", "charuco:5x4:0.04:0.03:DICT_4X4_50"]
     + ["--real", "{sample}"],
@@ -82,6 +82,32 @@ def test_bench_runs_at_a_tiny_size(name, request, monkeypatch, tmp_path):
     written = [json.loads(p.read_text()) for p in results.glob("*.json")]
     assert written, f"{name} wrote no figures"
     assert all(doc.get("machine") for doc in written)
+
+
+def test_ablation_shares_a_kept_stage_one(session, monkeypatch, tmp_path):
+    """--stage-one: the variants start from a stage I kept by an earlier run, not a new one."""
+    import _common
+    import ablation
+
+    monkeypatch.setattr(_common, "RESULTS", tmp_path)
+    monkeypatch.setattr(ablation, "RESULTS", tmp_path)
+    tiny = ["--scenes", str(session), "--iterations", "5", "--material-iterations", "2"]
+    ablation.main([*tiny, "--variants", "full", "--work", str(tmp_path / "first")])
+    kept = tmp_path / "first" / session.stem
+    calls = []
+    original = ablation.reconstruct
+
+    def counted(*args, **kwargs):
+        calls.append(kwargs["stage"])
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(ablation, "reconstruct", counted)
+    ablation.main([*tiny, "--variants", "full", "no edge TV", "--stage-one", str(kept)])
+    assert calls == ["material", "material"]  # no stage I fitted
+    written = json.loads((tmp_path / "ablation.json").read_text())
+    first = json.loads((kept / "metrics.json").read_text())
+    assert written["stage_one"][session.stem]["object_psnr_cc"] == first["object_psnr_cc"]
+    assert [r["variant"] for r in written["runs"]] == ["full", "no edge TV"]
 
 
 TINY_STEPS = ["--preset", "tiny", "--from", "2", "--steps", "3"]
