@@ -258,7 +258,12 @@ def main(argv: list[str] | None = None) -> None:
             if args.stage_one is not None:
                 kept = ReconstructionFolder(args.stage_one)
                 stage_two = kept.checkpoint("material").name
-                shutil.copytree(kept.root, base, ignore=shutil.ignore_patterns(RENDERS, stage_two))
+                shutil.copytree(
+                    kept.root,
+                    base,
+                    ignore=shutil.ignore_patterns(RENDERS, stage_two),
+                    dirs_exist_ok=True,  # a --work folder run again
+                )
                 first = ReconstructionFolder(base).read_result()
                 stage_one[label] = first.figures.measured()
             else:
@@ -272,7 +277,9 @@ def main(argv: list[str] | None = None) -> None:
                     continue  # the full model left it out already on this scene
                 out = Path(tmp) / f"{label}-{name.replace(' ', '-')}"
                 if own is None:
-                    shutil.copytree(base, out, ignore=shutil.ignore_patterns(RENDERS))
+                    shutil.copytree(
+                        base, out, ignore=shutil.ignore_patterns(RENDERS), dirs_exist_ok=True
+                    )
                 else:
                     stage_one[f"{label} {name}"] = fit_stage_one(scene, session, out, own)
                 with truth_light(scene) if args.light == "truth" else nullcontext():

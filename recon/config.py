@@ -137,8 +137,9 @@ class MaterialConfig:
     tv_weight: float = 0.05
     edge_beta: float = 10.0
     tv_normal_weight: float = 0.1
-    # effects: "auto" models them when the scene calls for it (visibility: occluders found in
-    # the baked geometry; indirect: with visibility), "on", or "off"
+    # effects: "auto" models those under which stage II's starting base color varies least
+    # (material.base_variation; indirect light: the bounce baked with the visibility), "on",
+    # or "off"
     visibility: EffectMode = "auto"
     indirect: EffectMode = "auto"
     # the normals stage II starts from: "planes" (through each Gaussian's neighbours) or

@@ -16,7 +16,6 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import assert_never
 
 import numpy as np
 import torch
@@ -56,14 +55,16 @@ from evcap.session import Session
 
 # the channels of a stage-II render, in order
 CHANNELS = {"radiance": 3, "base_color": 3, "roughness": 1, "shading_normal": 3}
-# occluders: an isolated object shows no depth jumps inside its outline; where surfaces hide
-# one another, the hiding outlines are as long as the opaque region is wide. Jumping pixels per
-# view over the square root of its opaque pixels (an outline's length against the region's
-# size, whatever the resolution): the multi-object scene's true surfaces 1.6 (0.75 % of its
-# opaque pixels: a share of the area missed them), its stage-I fog more; the demo's isolated
-# sphere 0.2, single_object's stage-I fog 0.62
-OCCLUSION_JUMP = 0.1  # relative depth step between neighbouring pixels
-OCCLUDING_OUTLINE = 0.8
+# "auto" effects: the base color's variation at the start, in renders of this many views
+# along the path, over pixels at least this opaque, each step between neighbouring pixels
+# counted up to SMOOTH_STEP in log (summed over the channels): what shading explains changes
+# gradually, an edge of the material counts no more than a small step. Measured on a ball on
+# a floor (tests/recon/test_material.py): any bound from 0.01 to 0.1 tells which effects
+# made the radiance; unbounded, the model that lowers the ball's contrast against the floor
+# won over the bounce that made it
+START_VIEWS = 6
+OPAQUE_PIXEL = 0.9
+SMOOTH_STEP = 0.05
 NEIGHBOUR_OPACITY = 0.1  # Gaussians fainter than this are not taken as the surface
 
 
@@ -117,6 +118,8 @@ class MaterialField(torch.nn.Module):
         for name in ("receivers", "sources", "weights"):
             self.register_buffer(f"bounce_{name}", getattr(bounce, name, None))
         self.backend = backend
+        # base_variation at the start under each choice of effects, where "auto" chose them
+        self.start_variation: dict[str, float] = {}
 
     @property
     def effects(self) -> dict[str, bool]:
@@ -210,10 +213,11 @@ def new_material_field(
     radiance: RadianceField, data: TrainingData, config: MaterialConfig
 ) -> MaterialField:
     """Stage II's start: normals from the plane of each Gaussian's neighbours or the Gaussians'
-    own (config.normals_from; facing the cameras), visibility baked when the scene has
-    occluders (and, with indirect light, which surface each Gaussian sees where its light is
-    blocked), base color such that the diffuse shading under the stage-I background as light
-    gives the stage-I radiance."""
+    own (config.normals_from; facing the cameras), base color such that the shading under the
+    stage-I background as light gives the stage-I radiance. Visibility (baked from the
+    geometry) and indirect light (with visibility: the bounce baked with it): as the config
+    says, or, "auto", the choice under which that base color varies least, seen along the
+    path (`base_variation`)."""
     g = radiance.gaussians
     light = Background.from_faces(radiance.background.faces.data.cpu())
     with torch.no_grad():
@@ -227,37 +231,84 @@ def new_material_field(
         normals = torch.where(
             ((cams - g.means) * normals).sum(1, keepdim=True) < 0, -normals, normals
         )
-    occluded = modelled(config.visibility, lambda: has_occluders(g, data, radiance.backend))
-    directions = fibonacci_directions(DIFFUSE_DIRECTIONS).to(g.means.device)
-    indirect = modelled(config.indirect, lambda: occluded)
-    visibility, bounce = None, None
-    if occluded:
-        baked = bake_occlusion(g, normals, directions, bounce=indirect)
-        visibility, bounce = baked.visibility, baked.bounce
-    field = MaterialField(g, light, normals.cpu(), visibility, indirect, radiance.backend, bounce)
-    field = field.to(g.means.device)
-    with torch.no_grad():
         target = g.radiance(cams, 0)
-        field.base_logits.zero_()
-        field.roughness_logits.fill_(
-            _logit(torch.tensor((0.6 - MIN_ROUGHNESS) / (1 - MIN_ROUGHNESS)))
-        )
-        color, _ = field.shaded(cams)
-        field.base_logits.copy_(_logit((0.5 * target / color.clamp(min=1e-6)).clamp(0.03, 0.97)))
+    choices = effect_choices(config.visibility, config.indirect)
+    baked = None
+    if any(visibility for visibility, _ in choices):
+        directions = fibonacci_directions(DIFFUSE_DIRECTIONS).to(g.means.device)
+        bounce = any(visibility and indirect for visibility, indirect in choices)
+        baked = bake_occlusion(g, normals, directions, bounce=bounce)
+    fields, variation = {}, {}
+    for visibility, indirect in choices:
+        field = MaterialField(
+            g,
+            light,
+            normals.cpu(),
+            baked.visibility if visibility else None,
+            indirect,
+            radiance.backend,
+            baked.bounce if visibility and indirect else None,
+        ).to(g.means.device)
+        start_material(field, target, cams)
+        if len(choices) == 1:
+            return field
+        name = effects_name(visibility, indirect)
+        fields[name], variation[name] = field, base_variation(field, data)
+    field = fields[min(variation, key=variation.get)]  # on a tie the fewest effects
+    field.start_variation = variation
     return field
 
 
-def modelled(mode: EffectMode, auto: Callable[[], bool]) -> bool:
-    """Whether an effect is modelled: "on", "off", or "auto" (what ``auto()`` says)."""
-    match mode:
-        case "on":
-            return True
-        case "off":
-            return False
-        case "auto":
-            return auto()
-        case _:
-            assert_never(mode)
+def effect_choices(visibility: EffectMode, indirect: EffectMode) -> list[tuple[bool, bool]]:
+    """The (visibility, indirect) pairs the modes leave open, the fewest effects first.
+    "auto" indirect light is judged by the bounce baked with the visibility: without it the
+    learnt light from other surfaces starts at nothing, and nothing tells it."""
+    options = {"on": [True], "off": [False], "auto": [False, True]}
+    return [
+        (v, i)
+        for v in options[visibility]
+        for i in options[indirect]
+        if v or not i or indirect == "on"
+    ]
+
+
+def effects_name(visibility: bool, indirect: bool) -> str:
+    on = [k for k, v in (("visibility", visibility), ("indirect", indirect)) if v]
+    return "+".join(on) or "neither"
+
+
+@torch.no_grad()
+def start_material(field: MaterialField, target: torch.Tensor, cams: torch.Tensor) -> None:
+    """Roughness 0.6, base color such that the shading seen from ``cams`` of a mid-gray
+    surface, scaled, gives ``target`` [N, 3]."""
+    field.base_logits.zero_()
+    field.roughness_logits.fill_(_logit(torch.tensor((0.6 - MIN_ROUGHNESS) / (1 - MIN_ROUGHNESS))))
+    color, _ = field.shaded(cams)
+    field.base_logits.copy_(_logit((0.5 * target / color.clamp(min=1e-6)).clamp(0.03, 0.97)))
+
+
+@torch.no_grad()
+def base_variation(field: MaterialField, data: TrainingData, views: int = START_VIEWS) -> float:
+    """Mean absolute step of the log base color between neighbouring opaque pixels of
+    ``views`` renders along the path, each bounded by SMOOTH_STEP: the gradual variation the
+    shading leaves to the material, where the cameras see it. An effect that explains the
+    radiance (a shadow, a neighbour's color) lowers it; one that does not (misjudged normals
+    that see into their own surface) raises it. In log, so that a light that is dimmer
+    overall (as visibility makes it) does not count as variation."""
+    viewmats = data.viewmats()
+    frames = np.unique(np.linspace(0, len(viewmats) - 1, views).round().astype(int))
+    total, count = 0.0, 0
+    for f in frames:
+        r = field.render_view(viewmats[int(f)], data.grid)
+        opaque = r.alpha > OPAQUE_PIXEL
+        log = torch.log((r.color[..., 3:6] / r.alpha[..., None].clamp(min=1e-6)).clamp(min=1e-3))
+        for d, both in (
+            (log[:, 1:] - log[:, :-1], opaque[:, 1:] & opaque[:, :-1]),
+            (log[1:] - log[:-1], opaque[1:] & opaque[:-1]),
+        ):
+            total += float(d.abs().sum(-1).clamp(max=SMOOTH_STEP)[both].sum())
+            count += int(both.sum())
+    return total / count if count else 0.0
 
 
 @torch.no_grad()
@@ -280,37 +331,6 @@ def plane_normals(
         _, vectors = torch.linalg.eigh((nb.transpose(1, 2) @ nb).cpu().double())
         out.append(vectors[:, :, 0].to(means))
     return torch.cat(out)
-
-
-@torch.no_grad()
-def has_occluders(g: Gaussians, data: TrainingData, backend: Backend, views: int = 4) -> bool:
-    """Whether surfaces hide one another in the views along the path (`occluding_outlines`).
-    (The baked visibility itself cannot tell, as a surface with misjudged normals looks into
-    itself.)"""
-    times = np.linspace(data.windows.frame_times[0], data.windows.frame_times[-1], views)
-    scores = []
-    for T in data.track.at(times.astype(np.int64)):
-        viewmat = torch.as_tensor(np.linalg.inv(T), dtype=torch.float32, device=g.means.device)
-        cam = Camera(viewmat, data.grid.K, data.grid.width, data.grid.height)
-        empty = g.means.new_zeros(len(g), 1)
-        r = rasterize(g.means, g.quats, g.scales, g.opacities, empty, cam, backend=backend)
-        scores.append(occluding_outlines(r.depth, r.alpha > 0.9))
-    return float(np.mean(scores)) > OCCLUDING_OUTLINE
-
-
-def occluding_outlines(depth: torch.Tensor, opaque: torch.Tensor) -> float:
-    """Neighbouring opaque pixels [H, W] whose depths differ by more than OCCLUSION_JUMP (of the
-    nearer), over the square root of the opaque pixels: the length of the outlines where one
-    surface hides another against the size of what is opaque (0 for an isolated convex object)."""
-    jumps = 0
-    for d1, d2, o1, o2 in (
-        (depth[:, 1:], depth[:, :-1], opaque[:, 1:], opaque[:, :-1]),
-        (depth[1:], depth[:-1], opaque[1:], opaque[:-1]),
-    ):
-        step = (d1 - d2).abs() / torch.minimum(d1, d2).clamp(min=1e-6)
-        jumps += int(((step > OCCLUSION_JUMP) & o1 & o2).sum())
-    area = int(opaque.sum())
-    return jumps / math.sqrt(area) if area else 0.0
 
 
 @dataclass
@@ -383,6 +403,13 @@ def train_material(
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed + 2)
     radiance.requires_grad_(False)
+    if resume is not None:  # the effects the saved state was started with
+        saved = resume["material"]
+        config = dataclasses.replace(
+            config,
+            visibility="on" if "visibility" in saved else "off",
+            indirect="on" if "indirect_sh" in saved else "off",
+        )
     field = new_material_field(radiance, data, config)
     if resume is not None:
         try:

@@ -274,6 +274,7 @@ def reconstruct(
         result.figures = dataclasses.replace(figures, **Figures.of(found).measured())
         result.material_iterations = mfit.steps
         result.effects = {**mfit.field.effects, **{k: k not in ablate for k in ABLATIONS}}
+        result.effect_variation = mfit.field.start_variation or None
         result.relit = environment is not None
         result.material_seconds = time.perf_counter() - started + earlier
         result.interrupted = mfit.interrupted

@@ -167,6 +167,9 @@ class ReconstructionResult:
     material_iterations: int | None = None
     material_seconds: float | None = None
     effects: dict[str, bool] | None = None  # each effect and term: modelled or not
+    # where "auto" chose visibility and indirect light: the base color's variation at stage
+    # II's start under each choice (recon.material.base_variation; the lowest was chosen)
+    effect_variation: dict[str, float] | None = None
     relit: bool | None = None  # relit under a new light
     # the training losses along the way, per stage ("radiance", "material")
     training_log: dict[str, list[dict]] = field(default_factory=dict)

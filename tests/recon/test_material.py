@@ -79,6 +79,33 @@ def plane_and_point(z_point: float) -> Gaussians:
     )
 
 
+def ball_on_floor(
+    radius: float, spacing: float, half: float, floor_z: float = 0.0
+) -> tuple[Gaussians, torch.Tensor]:
+    """Flat opaque discs on a square floor (``half`` its half width, at ``floor_z``) and on a
+    ball of ``radius`` resting on it at the middle, about ``spacing`` apart; and their normals
+    [N, 3]. The floor's discs come first."""
+    xs, ys = np.meshgrid(np.arange(-half, half, spacing), np.arange(-half, half, spacing))
+    floor = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, floor_z)], 1)
+    ball_normals = fibonacci_directions(int(4 * math.pi * radius**2 / spacing**2)).numpy()
+    centre = np.array([0.0, 0.0, floor_z + radius])
+    means = np.concatenate([floor, centre + radius * ball_normals])
+    normals = np.concatenate([np.tile([0.0, 0.0, 1.0], (len(floor), 1)), ball_normals])
+    # the rotation taking +z to each normal: (w, x, y, z) = normalise(1 + n.z, -n.y, n.x, 0)
+    quats = np.stack([1 + normals[:, 2], -normals[:, 1], normals[:, 0], 0 * normals[:, 0]], 1)
+    quats[normals[:, 2] < -0.999] = [0.0, 1.0, 0.0, 0.0]
+    n = len(means)
+    g = Gaussians(
+        torch.tensor(means, dtype=torch.float32),
+        torch.log(torch.tensor([0.6 * spacing, 0.6 * spacing, 0.01 * spacing])).repeat(n, 1),
+        torch.nn.functional.normalize(torch.tensor(quats, dtype=torch.float32), dim=1),
+        torch.full((n,), 4.0),
+        torch.zeros(n, 1, 3),
+        torch.zeros(n, 0, 3),
+    )
+    return g, torch.tensor(normals, dtype=torch.float32)
+
+
 def test_visibility_is_blocked_under_a_roof_and_open_beside_it():
     g = plane_and_point(0.0)
     dirs = torch.tensor([[0.0, 0, 1], [0.0, 0.3, 0.95], [0.0, 0, -1]])
@@ -114,26 +141,11 @@ def test_a_floor_beside_a_resting_sphere_sees_what_the_sphere_leaves_open():
     where it passes within the radius of the centre). Rays marched through a grid started
     inside the ball there and saw a tenth of the sky the floor sees."""
     radius, spacing = 0.4, 0.04
-    xs, ys = np.meshgrid(np.arange(-1.6, 1.6, spacing), np.arange(-1.6, 1.6, spacing))
-    floor = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], 1)
-    ball_normals = fibonacci_directions(int(4 * math.pi * radius**2 / spacing**2)).numpy()
+    g, normals = ball_on_floor(radius, spacing, 1.6)
+    floor = g.means[: np.arange(-1.6, 1.6, spacing).size ** 2].detach().numpy()
     centre = np.array([0.0, 0.0, radius])
-    means = np.concatenate([floor, centre + radius * ball_normals])
-    normals = np.concatenate([np.tile([0.0, 0.0, 1.0], (len(floor), 1)), ball_normals])
-    # the rotation taking +z to each normal: (w, x, y, z) = normalise(1 + n.z, -n.y, n.x, 0)
-    quats = np.stack([1 + normals[:, 2], -normals[:, 1], normals[:, 0], 0 * normals[:, 0]], 1)
-    quats[normals[:, 2] < -0.999] = [0.0, 1.0, 0.0, 0.0]
-    n = len(means)
-    g = Gaussians(
-        torch.tensor(means, dtype=torch.float32),
-        torch.log(torch.tensor([0.6 * spacing, 0.6 * spacing, 0.01 * spacing])).repeat(n, 1),
-        torch.nn.functional.normalize(torch.tensor(quats, dtype=torch.float32), dim=1),
-        torch.full((n,), 4.0),
-        torch.zeros(n, 1, 3),
-        torch.zeros(n, 0, 3),
-    )
     dirs = fibonacci_directions(256)
-    baked = bake_visibility(g, torch.tensor(normals, dtype=torch.float32), dirs).float().numpy()
+    baked = bake_visibility(g, normals, dirs).float().numpy()
     near = np.flatnonzero(np.abs(np.linalg.norm(floor[:, :2], axis=1) - 0.55) < 0.1)
     to_centre = centre - floor[near]  # [M, 3]
     along = to_centre @ dirs.numpy().T  # [M, K]
@@ -295,31 +307,46 @@ def test_stage_two_losses_leave_out_the_ablated_terms(stage_one):
     assert left == {"event": terms["event"], "distill": 0.0, "anchor": 0.0, "tv": 0.0}
 
 
-def _floor_with_box(scale: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Depth [H, W] of a floor receding from 2 to 6 with a box at 2.5 standing on it in front,
-    a quarter of the width wide, and what is opaque, at ``scale`` times 64 x 48 pixels."""
-    h, w = 48 * scale, 64 * scale
-    depth = torch.linspace(6.0, 2.0, h)[:, None].repeat(1, w)
-    box = (slice(16 * scale, 40 * scale), slice(24 * scale, 40 * scale))
-    depth[box] = 2.5
-    return depth, torch.ones(h, w, dtype=torch.bool)
+@pytest.mark.parametrize("made_with", [(False, False), (True, False), (True, True)])
+def test_auto_models_the_effects_that_made_the_radiance(stage_one, made_with):
+    """A red ball resting on a white floor, its stage-I radiance made by the shading under a
+    uniform sky with neither effect, with visibility (the ball's shadow on the floor), or with
+    visibility and its bounce (the ball's red on the floor): `auto` chooses the effects that
+    explain it, and only those."""
+    from evcap.recon.gaussians import Background
+    from evcap.recon.radiance import RadianceField
+    from evcap.recon.sh import C0
 
-
-def _sphere(scale: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Depth of a sphere alone (nothing opaque around it)."""
-    h, w = 48 * scale, 64 * scale
-    y, x = torch.meshgrid(torch.linspace(-1, 1, h), torch.linspace(-1.33, 1.33, w), indexing="ij")
-    r2 = x * x + y * y
-    inside = r2 < 0.8
-    return torch.where(inside, 3.0 - torch.sqrt((1 - r2).clamp(min=0)), 0.0), inside
-
-
-@pytest.mark.parametrize("scale", [1, 2, 4])
-def test_occluders_are_told_from_an_isolated_object_at_any_resolution(scale):
-    """A box in front of a floor is an occluder at every render size (its outline is a small
-    share of the opaque area, smaller as the resolution grows); a sphere alone is not."""
-    assert material.occluding_outlines(*_floor_with_box(scale)) > material.OCCLUDING_OUTLINE
-    assert material.occluding_outlines(*_sphere(scale)) == 0.0
+    _, data, config = stage_one
+    g, normals = ball_on_floor(0.35, 0.07, 1.0, floor_z=-0.6)  # where the orbit looks
+    light = Background.from_faces(torch.full((6, 3, 8, 8), 0.5413))  # softplus: radiance 1
+    visibility, indirect = made_with
+    baked = bake_occlusion(
+        g, normals, fibonacci_directions(material.DIFFUSE_DIRECTIONS), bounce=indirect
+    )
+    truth = material.MaterialField(
+        g,
+        light,
+        normals,
+        baked.visibility if visibility else None,
+        indirect=False,
+        bounce=baked.bounce if indirect else None,
+    )
+    cams = torch.as_tensor(
+        data.track.at(data.windows.frame_times)[:, :3, 3].mean(0), dtype=torch.float32
+    )
+    floor = np.arange(-1.0, 1.0, 0.07).size ** 2
+    with torch.no_grad():
+        truth.base_logits[:floor] = 2.0  # white 0.88
+        truth.base_logits[floor:] = torch.tensor([1.5, -1.5, -1.5])  # red 0.82, 0.18, 0.18
+        truth.roughness_logits.fill_(2.0)
+        radiance, _ = truth.shaded(cams)
+        # stage I's Gaussians: the truth's radiance as their view-independent color
+        g.sh_dc[:, 0] = torch.log(torch.expm1(radiance.clamp(min=1e-4))) / C0
+    field = RadianceField(g, light, "torch")
+    chosen = material.new_material_field(field, data, cfg.material_preset("tiny"))
+    assert set(chosen.start_variation) == {"neither", "visibility", "visibility+indirect"}
+    assert chosen.effects == {"visibility": visibility, "indirect": indirect}
 
 
 def test_relighting_scales_the_light_from_other_surfaces_with_the_light():
