@@ -452,6 +452,7 @@ def train_material(
     steps = Steps(config.iterations, save_state, save_every_s, clock, resume)
     if resume is not None:
         optimizer.load_state_dict(resume["optimizer"])
+        field.start_variation = dict(resume.get("start_variation", {}))
         restore_random_states(rng, resume["random"])
         log = [MaterialLog(**x) for x in resume["log"]]
 
@@ -464,6 +465,7 @@ def train_material(
             "random": random_states(rng),
             "log": [dataclasses.asdict(x) for x in log],
             "seconds": steps.seconds(),
+            "start_variation": field.start_variation,
         }
 
     with steps.running(state):

@@ -67,6 +67,8 @@ def test_demo_runs_resumes_and_writes_the_report(tmp_path, monkeypatch):
     metrics = json.loads((out / "reconstruction" / "metrics.json").read_text())
     assert metrics["views"] == "held-out test views" and metrics["history"]
     assert metrics["pbr_render_psnr_cc"] > 15  # the pipeline works (measured here: 22.4 dB)
+    # what `auto` chose the effects by, kept across the interruption
+    assert metrics["effect_variation"].keys() == {"neither", "visibility", "visibility+indirect"}
     page = report.read_text()
     assert "http://" not in page and "https://" not in page
 

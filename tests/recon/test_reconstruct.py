@@ -152,6 +152,10 @@ def test_writes_every_output(color_result):
         "tv": True,
         "distill": True,
     }
+    # chosen by `auto`: the starting base color varied least with neither
+    variation = metrics["effect_variation"]
+    assert variation.keys() == {"neither", "visibility", "visibility+indirect"}
+    assert min(variation, key=variation.get) == "neither"
     renders = sorted(p.name for p in (out / "renders").iterdir())
     for kind in ("radiance", "radiance_cc", "depth", "normal"):
         assert any(kind in name and name.endswith(".png") for name in renders), kind
