@@ -137,9 +137,9 @@ class MaterialConfig:
     tv_weight: float = 0.05
     edge_beta: float = 10.0
     tv_normal_weight: float = 0.1
-    # effects: "auto" models those under which stage II's starting base color varies least
-    # (material.base_variation; indirect light: the bounce baked with the visibility), "on",
-    # or "off"
+    # effects: "auto" models visibility (and with it indirect light, the bounce baked with it)
+    # where stage II's starting base color varies least with it (material.base_variation),
+    # "on", or "off"
     visibility: EffectMode = "auto"
     indirect: EffectMode = "auto"
     # the normals stage II starts from: "planes" (through each Gaussian's neighbours) or

@@ -58,10 +58,10 @@ CHANNELS = {"radiance": 3, "base_color": 3, "roughness": 1, "shading_normal": 3}
 # "auto" effects: the base color's variation at the start, in renders of this many views
 # along the path, over pixels at least this opaque, each step between neighbouring pixels
 # counted up to SMOOTH_STEP in log (summed over the channels): what shading explains changes
-# gradually, an edge of the material counts no more than a small step. Measured on a ball on
-# a floor (tests/recon/test_material.py): any bound from 0.01 to 0.1 tells which effects
-# made the radiance; unbounded, the model that lowers the ball's contrast against the floor
-# won over the bounce that made it
+# gradually, an edge of the material counts no more than a small step (unbounded, visibility
+# alone won on a ball on a floor whose radiance the bounce had made, by lowering the ball's
+# contrast against the floor). On that ball (tests/recon/test_material.py) any bound from 0.01
+# to 0.1 tells which effects made the radiance
 START_VIEWS = 6
 OPAQUE_PIXEL = 0.9
 SMOOTH_STEP = 0.05
@@ -215,9 +215,9 @@ def new_material_field(
     """Stage II's start: normals from the plane of each Gaussian's neighbours or the Gaussians'
     own (config.normals_from; facing the cameras), base color such that the shading under the
     stage-I background as light gives the stage-I radiance. Visibility (baked from the
-    geometry) and indirect light (with visibility: the bounce baked with it): as the config
-    says, or, "auto", the choice under which that base color varies least, seen along the
-    path (`base_variation`)."""
+    geometry) and indirect light (the bounce baked with the visibility): as the config says,
+    or, "auto", the choice under which that base color varies least, seen along the path
+    (`base_variation`; indirect light goes with the visibility, `effect_choices`)."""
     g = radiance.gaussians
     light = Background.from_faces(radiance.background.faces.data.cpu())
     with torch.no_grad():
@@ -261,14 +261,15 @@ def new_material_field(
 
 def effect_choices(visibility: EffectMode, indirect: EffectMode) -> list[tuple[bool, bool]]:
     """The (visibility, indirect) pairs the modes leave open, the fewest effects first.
-    "auto" indirect light is judged by the bounce baked with the visibility: without it the
-    learnt light from other surfaces starts at nothing, and nothing tells it."""
+    "auto" indirect light goes with the visibility: what blocks a surface's light sends it
+    light of its own (the bounce, baked with the visibility). On multi_object's true surfaces
+    visibility without it fitted worst of the three though its start varied least
+    (bench/README.md): the start cannot tell those two apart."""
     options = {"on": [True], "off": [False], "auto": [False, True]}
     return [
         (v, i)
         for v in options[visibility]
-        for i in options[indirect]
-        if v or not i or indirect == "on"
+        for i in ([v] if indirect == "auto" else options[indirect])
     ]
 
 
