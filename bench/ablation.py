@@ -56,7 +56,8 @@ VARIANTS = {
     "no normal loss": {"stage_one": {"normal_weight": 0.0}},
     # indirect light stands for what the occluders hide: without visibility it goes too
     "no visibility": {"visibility": "off", "indirect": "off"},
-    "no indirect": {"indirect": "off"},
+    # run only where the full model has it, and so the visibility it goes with
+    "no indirect": {"visibility": "on", "indirect": "off"},
 }
 SWITCHES_EFFECT = {"no visibility": "visibility", "no indirect": "indirect"}
 # method.md: the published means and ablations (7 NeRF-Synthetic scenes, its own renderer)
