@@ -5,8 +5,8 @@ metallic 0), shaded under a learnt environment light (method.md):
 
 L_rad holds the physically based render to the frozen stage-I radiance of the same view; L_TV
 smooths the rendered base color and normals except where the event edge map has an edge.
-Visibility (baked from the geometry) and indirect light (learnt) are modelled only when the
-scene calls for them.
+Visibility (baked from the geometry) and indirect light (its bounce, and learnt) are modelled
+where they make the starting base color smoother (`auto`), or as the settings say.
 """
 
 from __future__ import annotations

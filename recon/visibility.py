@@ -1,5 +1,5 @@
 """Visibility of the environment from each Gaussian, baked once from the frozen stage-I
-geometry in the shading's own directions, used by stage II when the scene has occluders.
+geometry in the shading's own directions, used by stage II where it explains the radiance.
 
 One shadow map per direction: the opaque Gaussians are splatted onto a plane across that
 direction as the ellipses they cover seen along it, each pixel keeping the occluder nearest the
