@@ -81,10 +81,10 @@ def plane_and_point(z_point: float) -> Gaussians:
 
 def ball_on_floor(
     radius: float, spacing: float, half: float, floor_z: float = 0.0
-) -> tuple[Gaussians, torch.Tensor]:
+) -> tuple[Gaussians, torch.Tensor, int]:
     """Flat opaque discs on a square floor (``half`` its half width, at ``floor_z``) and on a
-    ball of ``radius`` resting on it at the middle, about ``spacing`` apart; and their normals
-    [N, 3]. The floor's discs come first."""
+    ball of ``radius`` resting on it at the middle, about ``spacing`` apart; their normals
+    [N, 3]; how many are the floor's (they come first)."""
     xs, ys = np.meshgrid(np.arange(-half, half, spacing), np.arange(-half, half, spacing))
     floor = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, floor_z)], 1)
     ball_normals = fibonacci_directions(int(4 * math.pi * radius**2 / spacing**2)).numpy()
@@ -103,7 +103,7 @@ def ball_on_floor(
         torch.zeros(n, 1, 3),
         torch.zeros(n, 0, 3),
     )
-    return g, torch.tensor(normals, dtype=torch.float32)
+    return g, torch.tensor(normals, dtype=torch.float32), len(floor)
 
 
 def test_visibility_is_blocked_under_a_roof_and_open_beside_it():
@@ -141,8 +141,8 @@ def test_a_floor_beside_a_resting_sphere_sees_what_the_sphere_leaves_open():
     where it passes within the radius of the centre). Rays marched through a grid started
     inside the ball there and saw a tenth of the sky the floor sees."""
     radius, spacing = 0.4, 0.04
-    g, normals = ball_on_floor(radius, spacing, 1.6)
-    floor = g.means[: np.arange(-1.6, 1.6, spacing).size ** 2].detach().numpy()
+    g, normals, on_floor = ball_on_floor(radius, spacing, 1.6)
+    floor = g.means[:on_floor].detach().numpy()
     centre = np.array([0.0, 0.0, radius])
     dirs = fibonacci_directions(256)
     baked = bake_visibility(g, normals, dirs).float().numpy()
@@ -319,7 +319,7 @@ def test_auto_models_the_effects_that_made_the_radiance(stage_one, made_with):
     from evcap.recon.sh import C0
 
     _, data, config = stage_one
-    g, normals = ball_on_floor(0.35, 0.07, 1.0, floor_z=-0.6)  # where the orbit looks
+    g, normals, floor = ball_on_floor(0.35, 0.07, 1.0, floor_z=-0.6)  # where the orbit looks
     light = Background.from_faces(torch.full((6, 3, 8, 8), 0.5413))  # softplus: radiance 1
     visibility, indirect = made_with
     baked = bake_occlusion(
@@ -336,7 +336,6 @@ def test_auto_models_the_effects_that_made_the_radiance(stage_one, made_with):
     cams = torch.as_tensor(
         data.track.at(data.windows.frame_times)[:, :3, 3].mean(0), dtype=torch.float32
     )
-    floor = np.arange(-1.0, 1.0, 0.07).size ** 2
     with torch.no_grad():
         truth.base_logits[:floor] = 2.0  # white 0.88
         truth.base_logits[floor:] = torch.tensor([1.5, -1.5, -1.5])  # red 0.82, 0.18, 0.18
