@@ -132,6 +132,7 @@ def _specular(
             ax, ay = 1.0, 0.0
         bx, by, bz = -ez * ay, ez * ax, ex * ay - ey * ax  # (e x a), a = (ax, ay, 0)
         s_mix = 0.5 * (1 + ez)
+        r, g, b = 0.0, 0.0, 0.0
         for i in range(len(disc)):
             t1 = disc[i, 0]
             t2 = (1 - s_mix) * np.sqrt(max(1 - t1 * t1, 0.0)) + s_mix * disc[i, 1]
@@ -157,7 +158,9 @@ def _specular(
             ndl = min(ndl, 1.0)
             # drawn in proportion to D G1(v) (v.h) / (n.v): what is left of f (n.l) / pdf
             gl = 2 * ndl / (ndl + np.sqrt(k + (1 - k) * ndl * ndl))
-            fresnel = f0 + (1 - f0) * (1 - min(vdh, 1.0)) ** 5
+            m = 1 - min(vdh, 1.0)
+            m2 = m * m
+            fresnel = f0 + (1 - f0) * (m2 * m2 * m)
             weight = fresnel * gl
             if shadows:
                 seen = 0.0
@@ -183,8 +186,12 @@ def _specular(
             y1 = min(y0 + 1, h - 1)
             x1 = (x0 + 1) % width
             x0 = x0 % width
-            for c in range(3):
-                light = (table[y0, x0, c] * (1 - fx) + table[y0, x1, c] * fx) * (1 - fy) + (
-                    table[y1, x0, c] * (1 - fx) + table[y1, x1, c] * fx
-                ) * fy
-                out[p, c] += weight * light / len(disc)
+            w00, w01 = weight * (1 - fx) * (1 - fy), weight * fx * (1 - fy)
+            w10, w11 = weight * (1 - fx) * fy, weight * fx * fy
+            r += w00 * table[y0, x0, 0] + w01 * table[y0, x1, 0]
+            r += w10 * table[y1, x0, 0] + w11 * table[y1, x1, 0]
+            g += w00 * table[y0, x0, 1] + w01 * table[y0, x1, 1]
+            g += w10 * table[y1, x0, 1] + w11 * table[y1, x1, 1]
+            b += w00 * table[y0, x0, 2] + w01 * table[y0, x1, 2]
+            b += w10 * table[y1, x0, 2] + w11 * table[y1, x1, 2]
+        out[p, 0], out[p, 1], out[p, 2] = r / len(disc), g / len(disc), b / len(disc)

@@ -61,7 +61,8 @@ class Environment:
 
     def radiance(self, dirs: np.ndarray) -> np.ndarray:
         """[N, 3] world directions -> [N, 3] radiance (without the sun, which is analytic)."""
-        d = dirs @ self.rotation  # into the environment's own frame
+        # into the environment's own frame
+        d = dirs if self.spec.rotation_deg == 0 else dirs @ self.rotation
         if self.image is not None:
             h, w = self.image.shape[:2]
             u = (np.arctan2(d[:, 1], d[:, 0]) / (2 * np.pi) + 0.5) * w - 0.5
@@ -76,11 +77,9 @@ class Environment:
             ] + (img[y1, x0] * (1 - fx)[:, None] + img[y1, x1] * fx[:, None]) * fy[:, None]
             return out * self.scale
         z = d[:, 2:3]
-        up = np.clip(z, 0, 1) ** 0.5
-        sky = self.horizon + (self.zenith - self.horizon) * up
+        out = self.horizon + (self.zenith - self.horizon) * np.sqrt(np.clip(z, 0, 1))
         # a smooth blend into the ground below the horizon (no discontinuity to fire events)
-        below = np.clip(-z / 0.05, 0, 1)
-        out = sky * (1 - below) + self.ground * below
+        out += (self.ground - out) * np.clip(-z / 0.05, 0, 1)
         if self.lobe_radiance.any():
             # falls to 1/e at lobe_width from its direction
             fall = (1 - d @ self.lobe_direction) / (1 - np.cos(self.lobe_width))

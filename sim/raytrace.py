@@ -98,19 +98,24 @@ class Bvh:
         return out
 
 
+CHUNK = 256  # rays per task of the compiled loops (each task keeps one traversal stack)
+
+
 @numba.njit(cache=True, inline="always")
-def _box(o, inv, lo, hi, t_max):
-    t0, t1 = 0.0, t_max
-    for k in range(3):
-        a = (lo[k] - o[k]) * inv[k]
-        b = (hi[k] - o[k]) * inv[k]
-        if a > b:
-            a, b = b, a
-        t0 = max(t0, a)
-        t1 = min(t1, b)
-        if t0 > t1:
-            return False
-    return True
+def _entry(ox, oy, oz, ix, iy, iz, lo, hi, node, t_max):
+    """Where the ray enters the node's box (inf: it misses it before t_max)."""
+    a, b = (lo[node, 0] - ox) * ix, (hi[node, 0] - ox) * ix
+    t0, t1 = min(a, b), max(a, b)
+    a, b = (lo[node, 1] - oy) * iy, (hi[node, 1] - oy) * iy
+    t0, t1 = max(t0, min(a, b)), min(t1, max(a, b))
+    a, b = (lo[node, 2] - oz) * iz, (hi[node, 2] - oz) * iz
+    t0, t1 = max(t0, min(a, b), 0.0), min(t1, max(a, b), t_max)
+    return t0 if t0 <= t1 else np.inf
+
+
+@numba.njit(cache=True, inline="always")
+def _inverse(d):
+    return 1.0 / d if abs(d) > 1e-15 else 1e15
 
 
 @numba.njit(cache=True, inline="always")
@@ -160,54 +165,74 @@ def _closest(
     u_out,
     v_out,
 ):
-    for i in numba.prange(dirs.shape[0]):
-        o, d = origins[i], dirs[i]
-        inv = 1.0 / np.where(np.abs(d) > 1e-15, d, 1e-15)
-        best, best_f, best_u, best_v = t_max, -1, 0.0, 0.0
+    n = dirs.shape[0]
+    for chunk in numba.prange((n + CHUNK - 1) // CHUNK):
         stack = np.empty(64, np.int64)
-        top = 0
-        stack[0] = 0
-        top = 1
-        while top > 0:
-            top -= 1
-            node = stack[top]
-            if not _box(o, inv, lo[node], hi[node], best):
-                continue
-            if count[node] > 0:
-                for k in range(start[node], start[node] + count[node]):
-                    t, u, v = _triangle(o, d, v0[k], e1[k], e2[k])
-                    if t < best:
-                        best, best_f, best_u, best_v = t, k, u, v
-            else:
-                stack[top] = left[node]
-                stack[top + 1] = right[node]
-                top += 2
-        if best_f >= 0:
-            t_out[i], face_out[i], u_out[i], v_out[i] = best, best_f, best_u, best_v
+        for i in range(chunk * CHUNK, min(n, (chunk + 1) * CHUNK)):
+            o, d = origins[i], dirs[i]
+            ox, oy, oz = o[0], o[1], o[2]
+            ix, iy, iz = _inverse(d[0]), _inverse(d[1]), _inverse(d[2])
+            best, best_f, best_u, best_v = t_max, -1, 0.0, 0.0
+            top = 0
+            if _entry(ox, oy, oz, ix, iy, iz, lo, hi, 0, best) < np.inf:
+                stack[0] = 0
+                top = 1
+            while top > 0:
+                top -= 1
+                node = stack[top]
+                if count[node] > 0:
+                    for k in range(start[node], start[node] + count[node]):
+                        t, u, v = _triangle(o, d, v0[k], e1[k], e2[k])
+                        if t < best:
+                            best, best_f, best_u, best_v = t, k, u, v
+                    continue
+                # the nearer child is visited first: its hits cut the farther one's search
+                a, b = left[node], right[node]
+                ta = _entry(ox, oy, oz, ix, iy, iz, lo, hi, a, best)
+                tb = _entry(ox, oy, oz, ix, iy, iz, lo, hi, b, best)
+                if ta > tb:
+                    a, b, ta, tb = b, a, tb, ta
+                if tb < np.inf:
+                    stack[top] = b
+                    top += 1
+                if ta < np.inf:
+                    stack[top] = a
+                    top += 1
+                # a node popped later may lie beyond a hit found since it was pushed
+                while (
+                    top > 0
+                    and _entry(ox, oy, oz, ix, iy, iz, lo, hi, stack[top - 1], best) == np.inf
+                ):
+                    top -= 1
+            if best_f >= 0:
+                t_out[i], face_out[i], u_out[i], v_out[i] = best, best_f, best_u, best_v
 
 
 @numba.njit(cache=True, parallel=True)
 def _any(origins, dirs, t_max, lo, hi, left, right, start, count, v0, e1, e2, out):
-    for i in numba.prange(dirs.shape[0]):
-        o, d = origins[i], dirs[i]
-        inv = 1.0 / np.where(np.abs(d) > 1e-15, d, 1e-15)
+    n = dirs.shape[0]
+    for chunk in numba.prange((n + CHUNK - 1) // CHUNK):
         stack = np.empty(64, np.int64)
-        stack[0] = 0
-        top = 1
-        hit = False
-        while top > 0 and not hit:
-            top -= 1
-            node = stack[top]
-            if not _box(o, inv, lo[node], hi[node], t_max[i]):
-                continue
-            if count[node] > 0:
-                for k in range(start[node], start[node] + count[node]):
-                    t, _, _ = _triangle(o, d, v0[k], e1[k], e2[k])
-                    if t < t_max[i]:
-                        hit = True
-                        break
-            else:
-                stack[top] = left[node]
-                stack[top + 1] = right[node]
-                top += 2
-        out[i] = hit
+        for i in range(chunk * CHUNK, min(n, (chunk + 1) * CHUNK)):
+            o, d = origins[i], dirs[i]
+            ox, oy, oz = o[0], o[1], o[2]
+            ix, iy, iz = _inverse(d[0]), _inverse(d[1]), _inverse(d[2])
+            stack[0] = 0
+            top = 1
+            hit = False
+            while top > 0 and not hit:
+                top -= 1
+                node = stack[top]
+                if _entry(ox, oy, oz, ix, iy, iz, lo, hi, node, t_max[i]) == np.inf:
+                    continue
+                if count[node] > 0:
+                    for k in range(start[node], start[node] + count[node]):
+                        t, _, _ = _triangle(o, d, v0[k], e1[k], e2[k])
+                        if t < t_max[i]:
+                            hit = True
+                            break
+                else:
+                    stack[top] = left[node]
+                    stack[top + 1] = right[node]
+                    top += 2
+            out[i] = hit

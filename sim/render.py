@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from evcap.images import read_image_linear
@@ -47,6 +48,38 @@ class RenderResult:
     # the bounce, sun, point lights): 1 where unshadowed; 0 where no surface
     visibility: np.ndarray
     indirect: np.ndarray  # [P, 3] radiance added by the one bounce of diffuse light
+    # when the render left the environment's specular light out of the radiance: what it
+    # depends on at each hit (Renderer.environment_specular adds it); None when it is in
+    specular_inputs: SpecularInputs | None = None
+
+
+@dataclass
+class SpecularInputs:
+    """What the environment's specular light depends on, at the hits ``rows`` of a render."""
+
+    rows: np.ndarray  # [H] indices into the render's pixels
+    normal: np.ndarray  # [H, 3] world frame, facing the viewer
+    view: np.ndarray  # [H, 3] unit direction to the viewer
+    roughness: np.ndarray  # [H]
+    triangle: np.ndarray  # [H, 3] vertex indices of the triangle hit
+    weights: np.ndarray  # [H, 3] barycentric weights of the hit
+    obj: np.ndarray  # [H] object index
+    point: np.ndarray  # [H, 3] the hit, world frame
+    distance: np.ndarray  # [H] from the ray's origin to the hit
+
+    def take(self, sel: np.ndarray) -> SpecularInputs:
+        """The inputs of the hits ``sel`` (a mask or indices into ``rows``)."""
+        return SpecularInputs(
+            *(getattr(self, k)[sel] for k in self.__dataclass_fields__)  # type: ignore[arg-type]
+        )
+
+
+def _no_hits() -> SpecularInputs:
+    none = np.zeros((0, 3))
+    index = np.zeros((0, 3), np.int64)
+    return SpecularInputs(
+        index[:, 0], none, none, none[:, 0], index, none, index[:, 0], none, none[:, 0]
+    )
 
 
 def _noise(uv: np.ndarray, scale: float, seed: int) -> np.ndarray:
@@ -226,6 +259,20 @@ class Renderer:
                 np.add.at(bounce, rows, albedo / np.pi * e_hit * (np.pi / n_cells))
             self.vertex_irradiance = env + bounce
             self.vertex_bounce = bounce
+        self.vertex_table = np.ascontiguousarray(
+            np.concatenate(
+                [
+                    m.normals,
+                    m.uvs,
+                    self.vertex_irradiance,
+                    self.vertex_env,
+                    self.vertex_env_unshadowed,
+                    self.vertex_bounce,
+                ],
+                axis=1,
+            ),
+            np.float64,
+        )
 
     def _point_irradiance(self, x: np.ndarray, n: np.ndarray, shadows: bool) -> np.ndarray:
         """Irradiance from the sun and point lights at points x with normals n."""
@@ -266,20 +313,36 @@ class Renderer:
 
     # -- rendering ---------------------------------------------------------------------------------
 
-    def render(self, T_world_cam: np.ndarray, pixels: np.ndarray | None = None) -> RenderResult:
-        """Render the pixels (flat indices; None: all) for the camera at ``T_world_cam``."""
+    def render(
+        self,
+        T_world_cam: np.ndarray,
+        pixels: np.ndarray | None = None,
+        *,
+        specular: bool = True,
+    ) -> RenderResult:
+        """Render the pixels (flat indices; None: all) for the camera at ``T_world_cam``;
+        ``specular``: as in render_rays."""
         rays = self.camera.rays() if pixels is None else self.camera.rays()[pixels]
         rot, origin = T_world_cam[:3, :3], T_world_cam[:3, 3]
-        result = self.render_rays(np.broadcast_to(origin, rays.shape), rays @ rot.T, rays[:, 2])
+        result = self.render_rays(
+            np.broadcast_to(origin, rays.shape), rays @ rot.T, rays[:, 2], specular=specular
+        )
         result.normal = result.normal @ rot  # into the camera frame
         return result
 
     def render_rays(
-        self, origins: np.ndarray, dirs: np.ndarray, ray_z: np.ndarray | None = None
+        self,
+        origins: np.ndarray,
+        dirs: np.ndarray,
+        ray_z: np.ndarray | None = None,
+        *,
+        specular: bool = True,
     ) -> RenderResult:
         """Render rays from their own origins (each pixel may come from a camera at another
         time): the simulator's refinements. Normals stay in the world frame; depth is the
-        distance along the ray times ``ray_z`` (the ray's z in its camera frame), if given."""
+        distance along the ray times ``ray_z`` (the ray's z in its camera frame), if given.
+        ``specular`` False: the environment's specular light is left out of the radiance, and
+        the result's specular_inputs say what it depends on."""
         t, face, u, v = self.bvh.closest(origins, dirs)
         origin = origins[face >= 0] if len(origins) else origins
         n_px = len(dirs)
@@ -291,6 +354,7 @@ class Renderer:
         depth = np.zeros(n_px)
         light_visibility = np.zeros(n_px)
         indirect = np.zeros((n_px, 3))
+        inputs = _no_hits()
         if (~hit).any():
             radiance[~hit] = self.env.background(dirs[~hit])
         if hit.any():
@@ -298,35 +362,34 @@ class Renderer:
             w = np.stack([1 - u[hit] - v[hit], u[hit], v[hit]], 1)
             tri = m.faces[f]
             x = origin + dirs[hit] * t[hit, None]
-            n = (m.normals[tri] * w[..., None]).sum(1)
+            # every per-vertex quantity at the hits, in one compiled pass
+            at_hit = _blend(self.vertex_table, tri, w)
+            n, uv, irradiance, received, unblocked, bounce = np.split(
+                at_hit, [3, 5, 8, 11, 14], axis=1
+            )
             n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
             view = -dirs[hit]
             flip = (n * view).sum(1) < 0  # two-sided
             n[flip] = -n[flip]
-            uv = (m.uvs[tri] * w[..., None]).sum(1)
             albedo = self.surfaces.base_color(m.material[f], m.object_id[f], uv)
             r = self.surfaces.roughness[m.material[f]]
-            irradiance = (self.vertex_irradiance[tri] * w[..., None]).sum(1)
             shadows = self.scene.lighting.shadows
             points, points_unshadowed = self._point_irradiance_both(x, n, shadows)
             irradiance = irradiance + points
             color = albedo / np.pi * irradiance
-            received = (self.vertex_env[tri] * w[..., None]).sum(1) + points
-            unblocked = (self.vertex_env_unshadowed[tri] * w[..., None]).sum(1) + points_unshadowed
-            received, unblocked = received.sum(1), unblocked.sum(1)
+            received = (received + points).sum(1)
+            unblocked = (unblocked + points_unshadowed).sum(1)
             dark = unblocked <= 1e-12
             # clip: the ratio may pass 1 by rounding
             light_visibility[hit] = np.where(
                 dark, 1.0, np.clip(received / np.where(dark, 1.0, unblocked), 0, 1)
             )
-            bounce = (self.vertex_bounce[tri] * w[..., None]).sum(1)
             indirect[hit] = albedo / np.pi * bounce
-            sky_open = None
-            if shadows:
-                sky_open = (tri, w, self.vertex_frames, self.vertex_open, *self.cells)
-            color += integrals.specular_environment(
-                self.sky_table, n, view, r, self.scene.lighting.specular_side, sky_open
+            inputs = SpecularInputs(
+                np.flatnonzero(hit), n, view, r, tri, w, m.object_id[f], x, t[hit]
             )
+            if specular:
+                color += self.environment_specular(inputs)
             for direction, irr, distance in self._light_dirs(x):
                 spec = ggx_specular(n, view, direction, r)
                 if shadows:
@@ -342,7 +405,38 @@ class Renderer:
             base[hit] = albedo
             rough[hit] = r
             depth[hit] = t[hit] * (ray_z[hit] if ray_z is not None else 1.0)
-        return RenderResult(radiance, depth, normal, base, rough, hit, light_visibility, indirect)
+        return RenderResult(
+            radiance,
+            depth,
+            normal,
+            base,
+            rough,
+            hit,
+            light_visibility,
+            indirect,
+            None if specular else inputs,
+        )
+
+    def environment_specular(self, inputs: SpecularInputs) -> np.ndarray:
+        """[H, 3] the environment's specular light at the hits (integrals.specular_environment,
+        the sky's visibility read from the bake when shadows are on)."""
+        sky_open = None
+        if self.scene.lighting.shadows:
+            sky_open = (
+                inputs.triangle,
+                inputs.weights,
+                self.vertex_frames,
+                self.vertex_open,
+                *self.cells,
+            )
+        return integrals.specular_environment(
+            self.sky_table,
+            inputs.normal,
+            inputs.view,
+            inputs.roughness,
+            self.scene.lighting.specular_side,
+            sky_open,
+        )
 
     def render_full(self, T_world_cam: np.ndarray) -> dict[str, np.ndarray]:
         """All pixels, as images: radiance [H, W, 3], depth, normal, base_color, roughness,
@@ -358,3 +452,15 @@ class Renderer:
             "visibility": r.visibility.reshape(h, w).astype(np.float32),
             "indirect": r.indirect.reshape(h, w, 3).astype(np.float32),
         }
+
+
+@numba.njit(cache=True, parallel=True)
+def _blend(table, tri, w):  # pragma: no cover - compiled
+    """[H, K] the rows of ``table`` [V, K] at the triangles' vertices, weighted by ``w``."""
+    out = np.empty((tri.shape[0], table.shape[1]))
+    for i in numba.prange(tri.shape[0]):
+        a, b, c = tri[i, 0], tri[i, 1], tri[i, 2]
+        wa, wb, wc = w[i, 0], w[i, 1], w[i, 2]
+        for k in range(table.shape[1]):
+            out[i, k] = table[a, k] * wa + table[b, k] * wb + table[c, k] * wc
+    return out

@@ -26,7 +26,7 @@ from evcap.events import Events
 from evcap.records import Calibration, GroundTruth, Poses, TruthViews
 from evcap.session import SensorInfo, SessionWriter
 from evcap.sim.events import PixelArray
-from evcap.sim.render import RENDERER_VERSION, Renderer
+from evcap.sim.render import RENDERER_VERSION, Renderer, RenderResult, SpecularInputs
 from evcap.sim.scene import Scene
 from evcap.sim.sensor import (
     ChannelMap,
@@ -35,6 +35,7 @@ from evcap.sim.sensor import (
     measured_sensor,
     true_calibration,
 )
+from evcap.sim.specular_reuse import SpecularFrame, specular_between
 from evcap.sim.trajectory import Trajectory, look_at
 from evcap.streams import Frames, ImuSamples, TriggerKind, Triggers
 
@@ -42,6 +43,20 @@ MIN_STEP_US = 2.0  # refinement stops at this interval: event times are good to 
 MAX_STEP_US = 10_000.0  # longest key step (a still camera, or a slow one)
 EPOCH_US = 1_767_225_600_000_000  # t = 0 of simulated sessions: 2026-01-01T00:00:00Z
 POSE_RATE_HZ = 500.0  # rate of the /poses table (interpolate between)
+# key renders per exact specular frame: at most max_step_px (0.5) x 8 = 4 pixels of image motion
+# between the frames that the specular light is shared from (evcap.sim.specular_reuse)
+ANCHOR_EVERY = 8
+
+
+@dataclass
+class _Key:
+    """A key render: each pixel's log signal and measured radiance at time t (us), and the
+    environment's specular light it holds."""
+
+    t: float
+    log: np.ndarray  # [P]
+    measured: np.ndarray  # [P]
+    frame: SpecularFrame
 
 
 @dataclass
@@ -53,10 +68,13 @@ class SimulationStats:
     imu: int = 0
     key_renders: int = 0
     refined_pixels: int = 0  # pixel renders added by refinement
+    exact_specular: int = 0  # surface pixels whose environment specular light was integrated
+    shared_specular: int = 0  # ...and those whose light was interpolated (specular_reuse)
     seconds: dict = field(
         default_factory=lambda: {
-            "setup": 0.0,
-            "render": 0.0,
+            "setup": 0.0,  # the scene, the mesh and the diffuse light's bake (visibility)
+            "render": 0.0,  # ray casting and shading, but the environment's specular light
+            "specular": 0.0,  # the environment's specular light (integrated or shared)
             "events": 0.0,
             "noise": 0.0,
             "aps": 0.0,
@@ -123,11 +141,58 @@ class Simulator:
     def _log(self, radiance: np.ndarray, pixels: np.ndarray | None = None) -> np.ndarray:
         return self.channels.log(radiance, self.scene.sensor.dark_level, pixels)
 
-    def _key(self, t_us: float) -> np.ndarray:
+    def _keys(self, first: _Key, times: list[float]) -> list[_Key]:
+        """Key renders at ``times`` after ``first``: the environment's specular light exact at
+        the last (an anchor), shared from ``first`` and the last where a pixel sees the same
+        surface (evcap.sim.specular_reuse), exact elsewhere."""
+        renders = [self._render(t) for t in times]
+        anchor = self._exact(renders[-1].specular_inputs)
+        n = self.camera.width * self.camera.height
+        frames = []
+        for t, r in zip(times[:-1], renders[:-1], strict=True):
+            inputs = r.specular_inputs
+            s = (t - first.t) / (times[-1] - first.t)
+            spec = self._shared(first.frame, anchor, s, inputs, inputs.rows)
+            frames.append(SpecularFrame.of(n, inputs, spec))
+        frames.append(anchor)
+        return [self._key_of(t, r, f) for t, r, f in zip(times, renders, frames, strict=True)]
+
+    def _first_key(self, t_us: float) -> _Key:
+        r = self._render(t_us)
+        return self._key_of(t_us, r, self._exact(r.specular_inputs))
+
+    def _render(self, t_us: float) -> RenderResult:
+        """A key render, the environment's specular light left out."""
         with _timed(self.stats, "render"):
             self.stats.key_renders += 1
-            r = self.renderer.render(self.trajectory.pose(t_us * 1e-6))
-            return self._log(r.radiance)
+            return self.renderer.render(self.trajectory.pose(t_us * 1e-6), specular=False)
+
+    def _exact(self, inputs: SpecularInputs) -> SpecularFrame:
+        with _timed(self.stats, "specular"):
+            self.stats.exact_specular += len(inputs.rows)
+            spec = self.renderer.environment_specular(inputs)
+            return SpecularFrame.of(self.camera.width * self.camera.height, inputs, spec)
+
+    def _key_of(self, t_us: float, r, frame: SpecularFrame) -> _Key:
+        r.radiance[r.specular_inputs.rows] += frame.specular[r.specular_inputs.rows]
+        measured = self.channels.of(r.radiance)
+        log = np.log(np.maximum(measured, 0.0) + self.scene.sensor.dark_level)
+        return _Key(t_us, log, measured, frame)
+
+    def _shared(self, a, b, s, inputs, pixels) -> np.ndarray:
+        with _timed(self.stats, "specular"):
+            spec, exact = specular_between(self.renderer, a, b, s, inputs, pixels)
+            self.stats.exact_specular += exact
+            self.stats.shared_specular += len(pixels) - exact
+            return spec
+
+    def _key_times(self, t_us: float, duration_us: float) -> list[float]:
+        """The next key times after ``t_us``, up to and including the next anchor."""
+        times = []
+        while len(times) < ANCHOR_EVERY and t_us < duration_us:
+            t_us = min(t_us + self._step_us(t_us), duration_us)
+            times.append(t_us)
+        return times
 
     def _step_us(self, t_us: float) -> float:
         """The next key step: the image motion stays under max_step_px."""
@@ -161,8 +226,9 @@ class Simulator:
             return MAX_STEP_US
         return float(np.clip(self.scene.max_step_px / speed, MIN_STEP_US, MAX_STEP_US))
 
-    def _render_at(self, pixels: np.ndarray, times_us: np.ndarray) -> np.ndarray:
-        """The log signal of ``pixels``, each from the camera at its own time."""
+    def _render_at(self, pixels: np.ndarray, times_us: np.ndarray, a: _Key, b: _Key) -> np.ndarray:
+        """The log signal of ``pixels``, each from the camera at its own time (between the key
+        renders ``a`` and ``b``)."""
         with _timed(self.stats, "render"):
             unique, inverse = np.unique(times_us, return_inverse=True)
             poses = self.trajectory.poses(unique * 1e-6)
@@ -171,11 +237,15 @@ class Simulator:
             dirs = np.einsum("nij,nj->ni", rot, rays)
             origins = poses[inverse, :3, 3]
             self.stats.refined_pixels += len(pixels)
-            r = self.renderer.render_rays(origins, dirs)
-            return self._log(r.radiance, pixels)
+            r = self.renderer.render_rays(origins, dirs, specular=False)
+        inputs = r.specular_inputs
+        s = (times_us[inputs.rows] - a.t) / (b.t - a.t)
+        r.radiance[inputs.rows] += self._shared(a.frame, b.frame, s, inputs, pixels[inputs.rows])
+        return self._log(r.radiance, pixels)
 
-    def _refine(self, t0: float, t1: float, v0: np.ndarray, v1: np.ndarray):
+    def _refine(self, a: _Key, b: _Key):
         """Extra samples (pixel, t, value) where a pixel's signal changed too much."""
+        t0, t1, v0, v1 = a.t, b.t, a.log, b.log
         px = np.flatnonzero(np.abs(v1 - v0) > self.threshold)
         lo, hi = np.full(len(px), t0), np.full(len(px), t1)
         vlo, vhi = v0[px], v1[px]
@@ -186,7 +256,7 @@ class Simulator:
             if not len(px):
                 break
             mid = np.round((lo + hi) / 2)  # whole microseconds
-            vmid = self._render_at(px, mid)
+            vmid = self._render_at(px, mid, a, b)
             out_px.append(px)
             out_t.append(mid)
             out_v.append(vmid)
@@ -203,8 +273,9 @@ class Simulator:
             return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
         return np.concatenate(out_px), np.concatenate(out_t), np.concatenate(out_v)
 
-    def _interval_events(self, t0: float, t1: float, v0: np.ndarray, v1: np.ndarray):
-        extra_px, extra_t, extra_v = self._refine(t0, t1, v0, v1)
+    def _interval_events(self, a: _Key, b: _Key):
+        extra_px, extra_t, extra_v = self._refine(a, b)
+        t0, t1, v0, v1 = a.t, b.t, a.log, b.log
         with _timed(self.stats, "events"):
             n = len(v0)
             px = np.concatenate([np.arange(n), np.arange(n), extra_px])
@@ -222,32 +293,29 @@ class Simulator:
         scene, stats = self.scene, self.stats
         duration_us = scene.trajectory.duration_s * 1e6
         width = self.camera.width
-        aps = self._aps_times()
+        exposures = {start: 0.0 for start in self._aps_times()}  # start -> integral so far
         pending: list[tuple] = []  # events not yet safe to write (jitter may reorder them)
         jitter = self.effects.get("timestamp_jitter", {}).get("sigma_us", 0.0)
-        t = 0.0
-        v = self._key(t)
-        self.pixels.start(v, t)
-        while t < duration_us:
-            t_next = min(t + self._step_us(t), duration_us)
-            v_next = self._key(t_next)
-            et, epx, ep = self._interval_events(t, t_next, v, v_next)
-            with _timed(self.stats, "noise"):
-                nt, npx, np_ = self.pixels.noise(t, t_next)
-                et, epx, ep = (
-                    np.concatenate([et, nt]),
-                    np.concatenate([epx, npx]),
-                    np.concatenate([ep, np_]),
-                )
-                et, epx, ep = self.pixels.degrade(et, epx, ep)
-            pending.append((et, epx, ep))
-            safe = t_next - 6 * jitter if t_next < duration_us else np.inf
-            pending = self._write_events(writer, pending, safe, width)
-            aps = self._write_frames(writer, aps, t_next)
-            t, v = t_next, v_next
-            if self.progress:
-                self.progress(t / 1e6, duration_us / 1e6)
-        self._write_frames(writer, aps, np.inf)
+        key = self._first_key(0.0)
+        self.pixels.start(key.log, key.t)
+        while key.t < duration_us:
+            for nxt in self._keys(key, self._key_times(key.t, duration_us)):
+                et, epx, ep = self._interval_events(key, nxt)
+                with _timed(self.stats, "noise"):
+                    nt, npx, np_ = self.pixels.noise(key.t, nxt.t)
+                    et, epx, ep = (
+                        np.concatenate([et, nt]),
+                        np.concatenate([epx, npx]),
+                        np.concatenate([ep, np_]),
+                    )
+                    et, epx, ep = self.pixels.degrade(et, epx, ep)
+                pending.append((et, epx, ep))
+                safe = nxt.t - 6 * jitter if nxt.t < duration_us else np.inf
+                pending = self._write_events(writer, pending, safe, width)
+                self._expose(writer, exposures, key, nxt)
+                key = nxt
+                if self.progress:
+                    self.progress(key.t / 1e6, duration_us / 1e6)
         if scene.imu is not None:
             ti, accel, gyro, temp = imu_samples(
                 self.trajectory, scene.imu, scene.units_per_meter, self.rng
@@ -288,36 +356,38 @@ class Simulator:
         starts = np.arange(0.0, duration_us - a.exposure_us, 1e6 / a.fps)
         return list(starts)
 
-    def _write_frames(self, writer, starts: list[float], t_us: float) -> list[float]:
-        """Frames whose exposure ended by ``t_us``; the rest wait."""
-        a = self.scene.aps
-        while starts and starts[0] + a.exposure_us <= t_us:
-            start = starts.pop(0)
-            with _timed(self.stats, "aps"):
-                n = max(1, int(np.ceil(a.exposure_us / 1000)))  # a render per ms: motion blur
-                total = 0
-                for k in range(n):
-                    tk = (start + (k + 0.5) * a.exposure_us / n) * 1e-6
-                    total = total + self.renderer.render(self.trajectory.pose(tk)).radiance
-                measured = self.channels.of(total / n)
-                raw = aps_frame(measured, a, self.rng).reshape(
-                    self.camera.height, self.camera.width
+    def _expose(self, writer, exposures: dict, a: _Key, b: _Key) -> None:
+        """Add what each pixel measured between the key renders ``a`` and ``b`` (joined
+        linearly, as the events' samples are) to the APS exposures open then; write the
+        frames whose exposure ends by ``b``."""
+        spec = self.scene.aps
+        with _timed(self.stats, "aps"):
+            for start in [s for s in exposures if s < b.t]:
+                end = start + spec.exposure_us
+                lo, hi = max(start, a.t), min(end, b.t)
+                if hi > lo:
+                    u = ((lo + hi) / 2 - a.t) / (b.t - a.t)
+                    exposures[start] = exposures[start] + (hi - lo) * (
+                        a.measured * (1 - u) + b.measured * u
+                    )
+                if end > b.t:
+                    continue
+                mean = exposures.pop(start) / spec.exposure_us
+                raw = aps_frame(mean, spec, self.rng).reshape(self.camera.height, self.camera.width)
+                t0, t1 = int(round(start)), int(round(end))
+                writer.append_frames(Frames(raw[None], [t0], [spec.exposure_us]))
+                writer.append_triggers(
+                    Triggers(
+                        [t0, t0, t1, t1],
+                        [
+                            TriggerKind.APS_FRAME_START,
+                            TriggerKind.APS_EXPOSURE_START,
+                            TriggerKind.APS_EXPOSURE_END,
+                            TriggerKind.APS_FRAME_END,
+                        ],
+                    )
                 )
-            t0, t1 = int(round(start)), int(round(start + a.exposure_us))
-            writer.append_frames(Frames(raw[None], [t0], [a.exposure_us]))
-            writer.append_triggers(
-                Triggers(
-                    [t0, t0, t1, t1],
-                    [
-                        TriggerKind.APS_FRAME_START,
-                        TriggerKind.APS_EXPOSURE_START,
-                        TriggerKind.APS_EXPOSURE_END,
-                        TriggerKind.APS_FRAME_END,
-                    ],
-                )
-            )
-            self.stats.frames += 1
-        return starts
+                self.stats.frames += 1
 
     # -- ground truth ----------------------------------------------------------------------------
 
