@@ -137,16 +137,28 @@ class Surfaces:
 
 
 def _bilinear(img: np.ndarray, uv: np.ndarray, wrap: bool = True) -> np.ndarray:
-    h, w = img.shape[:2]
-    x, y = uv[:, 0] * w - 0.5, uv[:, 1] * h - 0.5
-    if not wrap:
-        x, y = np.clip(x, 0, w - 1), np.clip(y, 0, h - 1)
-    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    x0, y0, x1, y1 = x0 % w, y0 % h, (x0 + 1) % w, (y0 + 1) % h
-    return (img[y0, x0] * (1 - fx) + img[y0, x1] * fx) * (1 - fy) + (
-        img[y1, x0] * (1 - fx) + img[y1, x1] * fx
-    ) * fy
+    """[N, C] the image [H, W, C] at texture coordinates ``uv`` [N, 2] (0..1, v down), bilinear;
+    ``wrap``: repeat the image (else clamp to its edge)."""
+    out = np.empty((len(uv), img.shape[2]))
+    _bilinear_into(np.ascontiguousarray(img, np.float64), np.ascontiguousarray(uv), wrap, out)
+    return out
+
+
+@numba.njit(cache=True, parallel=True)
+def _bilinear_into(img, uv, wrap, out):  # pragma: no cover - compiled
+    h, w = img.shape[0], img.shape[1]
+    for i in numba.prange(uv.shape[0]):
+        x, y = uv[i, 0] * w - 0.5, uv[i, 1] * h - 0.5
+        if not wrap:
+            x, y = min(max(x, 0.0), w - 1.0), min(max(y, 0.0), h - 1.0)
+        fx0, fy0 = np.floor(x), np.floor(y)
+        fx, fy = x - fx0, y - fy0
+        x0, y0 = int(fx0) % w, int(fy0) % h
+        x1, y1 = (x0 + 1) % w, (y0 + 1) % h
+        for c in range(img.shape[2]):
+            out[i, c] = (img[y0, x0, c] * (1 - fx) + img[y0, x1, c] * fx) * (1 - fy) + (
+                img[y1, x0, c] * (1 - fx) + img[y1, x1, c] * fx
+            ) * fy
 
 
 def _procedural(p: dict, uv: np.ndarray, base: np.ndarray, seed: int) -> np.ndarray:

@@ -6,6 +6,12 @@ than ``scene.max_step_log`` thresholds is rendered again at the midpoint, recurs
 MIN_STEP_US (only those pixels, each from the camera at its own time). Each pixel's samples are
 then joined linearly and the pixel model (evcap.sim.events) turns them into events. A still
 camera renders identical frames and produces no events (unless noise effects are on).
+
+The environment's specular light, most of a render's cost, is integrated exactly at every
+ANCHOR_EVERY-th key render and shared between them where a pixel sees the same surface
+(evcap.sim.specular_reuse); the refinements share it from the key renders around them. APS
+frames integrate the same linearly joined key samples over their exposure (no renders of their
+own); the ground truth's views are rendered exactly.
 """
 
 from __future__ import annotations

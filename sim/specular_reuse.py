@@ -23,6 +23,9 @@ from evcap.sim.render import Renderer, SpecularInputs
 
 MAX_BEND_DEG = 0.5  # a normal this far off the interpolated one: not the same smooth surface
 MAX_OFF_LINE = 0.002  # a hit this far (over its distance) off the line between the ends' hits
+# the light changing by more than this between the ends (a light of about 1): it may not change
+# linearly (a narrow lobe crossing the horizon, a contact shadow's edge)
+MAX_CHANGE = 0.02
 
 
 @dataclass
@@ -88,6 +91,7 @@ def specular_between(
         inputs.distance,
         np.cos(np.deg2rad(MAX_BEND_DEG)),
         MAX_OFF_LINE,
+        MAX_CHANGE,
         same,
         out,
     )
@@ -100,11 +104,12 @@ def specular_between(
 @numba.njit(cache=True, parallel=True)
 def _interpolate(
     a_obj, a_rough, a_n, a_x, a_spec, b_obj, b_rough, b_n, b_x, b_spec, s, pixels,
-    obj, rough, n, x, distance, min_cos, off_line, same, out,
+    obj, rough, n, x, distance, min_cos, off_line, max_change, same, out,
 ):  # fmt: skip  # pragma: no cover - compiled
     """same[i]: whether hit i lies on the surface the pixel saw in both frames (the same
     object and roughness, its normal within acos(min_cos) of the interpolated one, its point
-    within off_line x distance of the interpolated one); out[i]: the interpolated light."""
+    within off_line x distance of the interpolated one) and the light there changed by at most
+    max_change between them; out[i]: the interpolated light."""
     for i in numba.prange(len(pixels)):
         p, w = pixels[i], s[i]
         ok = a_obj[p] == obj[i] and b_obj[p] == obj[i]
@@ -115,6 +120,9 @@ def _interpolate(
             m2 = a_n[p, 2] * (1 - w) + b_n[p, 2] * w
             dot = m0 * n[i, 0] + m1 * n[i, 1] + m2 * n[i, 2]
             ok = dot >= min_cos * np.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+        if ok:
+            for k in range(3):
+                ok = ok and abs(a_spec[p, k] - b_spec[p, k]) <= max_change
         if ok:
             off = 0.0
             for k in range(3):

@@ -51,7 +51,7 @@ TINY = {
     + ["--resolutions", "0.5", "--seeds", "1"],
     "record_throughput": ["--seconds", "0.05"],
     "session_io": ["--events", "20000", "--batch", "5000"],
-    "sim_throughput": ["--seconds", "0.02", "--size", "48x36"],
+    "sim_throughput": ["--seconds", "0.02", "--size", "48x36", "--scenes", "single_object"],
     "tui_refresh": ["--seconds", "0.3", "--size", "80x24"],
 }
 OWN_TESTS = {"steps", "paper_table"}
