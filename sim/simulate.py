@@ -9,9 +9,9 @@ camera renders identical frames and produces no events (unless noise effects are
 
 The environment's specular light, most of a render's cost, is integrated exactly at every
 ANCHOR_EVERY-th key render and shared between them where a pixel sees the same surface
-(evcap.sim.specular_reuse); the refinements share it from the key renders around them. APS
-frames integrate the same linearly joined key samples over their exposure (no renders of their
-own); the ground truth's views are rendered exactly.
+(evcap.sim.specular_reuse); the refinements and the APS frames' renders (one a millisecond of
+exposure) share it from the key renders around them; the ground truth's views are rendered
+exactly.
 """
 
 from __future__ import annotations
@@ -56,12 +56,11 @@ ANCHOR_EVERY = 8
 
 @dataclass
 class _Key:
-    """A key render: each pixel's log signal and measured radiance at time t (us), and the
-    environment's specular light it holds."""
+    """A key render: each pixel's log signal at time t (us), and the environment's specular
+    light it holds."""
 
     t: float
     log: np.ndarray  # [P]
-    measured: np.ndarray  # [P]
     frame: SpecularFrame
 
 
@@ -183,7 +182,7 @@ class Simulator:
         r.radiance[r.specular_inputs.rows] += frame.specular[r.specular_inputs.rows]
         measured = self.channels.of(r.radiance)
         log = np.log(np.maximum(measured, 0.0) + self.scene.sensor.dark_level)
-        return _Key(t_us, log, measured, frame)
+        return _Key(t_us, log, frame)
 
     def _shared(self, a, b, s, inputs, pixels) -> np.ndarray:
         with _timed(self.stats, "specular"):
@@ -299,7 +298,7 @@ class Simulator:
         scene, stats = self.scene, self.stats
         duration_us = scene.trajectory.duration_s * 1e6
         width = self.camera.width
-        exposures = {start: 0.0 for start in self._aps_times()}  # start -> integral so far
+        exposures = {start: 0.0 for start in self._aps_times()}  # start -> sum of renders so far
         pending: list[tuple] = []  # events not yet safe to write (jitter may reorder them)
         jitter = self.effects.get("timestamp_jitter", {}).get("sigma_us", 0.0)
         key = self._first_key(0.0)
@@ -329,6 +328,15 @@ class Simulator:
             writer.append_imu(ImuSamples(ti, accel, gyro, temp))
             stats.imu = len(ti)
         return stats
+
+    def _measured(self, t_us: float, a: _Key, b: _Key) -> np.ndarray:
+        """[P] what each pixel measures at ``t_us`` (between the key renders ``a`` and ``b``)."""
+        r = self.renderer.render(self.trajectory.pose(t_us * 1e-6), specular=False)
+        inputs = r.specular_inputs
+        s = (t_us - a.t) / (b.t - a.t)
+        light, _ = specular_between(self.renderer, a.frame, b.frame, s, inputs, inputs.rows)
+        r.radiance[inputs.rows] += light
+        return self.channels.of(r.radiance)
 
     def _write_events(self, writer, pending, safe_us, width):
         with _timed(self.stats, "write"):
@@ -363,22 +371,23 @@ class Simulator:
         return list(starts)
 
     def _expose(self, writer, exposures: dict, a: _Key, b: _Key) -> None:
-        """Add what each pixel measured between the key renders ``a`` and ``b`` (joined
-        linearly, as the events' samples are) to the APS exposures open then; write the
-        frames whose exposure ends by ``b``."""
+        """Add the renders that fall between the key renders ``a`` and ``b`` (one a
+        millisecond of exposure: motion blur; the specular light shared from ``a`` and ``b``)
+        to the APS exposures open then; write the frames whose exposure ends by ``b``."""
         spec = self.scene.aps
+        if not exposures:
+            return
+        n = max(1, int(np.ceil(spec.exposure_us / 1000)))
         with _timed(self.stats, "aps"):
             for start in [s for s in exposures if s < b.t]:
+                for k in range(n):
+                    t = start + (k + 0.5) * spec.exposure_us / n
+                    if a.t <= t < b.t:
+                        exposures[start] = exposures[start] + self._measured(t, a, b)
                 end = start + spec.exposure_us
-                lo, hi = max(start, a.t), min(end, b.t)
-                if hi > lo:
-                    u = ((lo + hi) / 2 - a.t) / (b.t - a.t)
-                    exposures[start] = exposures[start] + (hi - lo) * (
-                        a.measured * (1 - u) + b.measured * u
-                    )
                 if end > b.t:
                     continue
-                mean = exposures.pop(start) / spec.exposure_us
+                mean = exposures.pop(start) / n
                 raw = aps_frame(mean, spec, self.rng).reshape(self.camera.height, self.camera.width)
                 t0, t1 = int(round(start)), int(round(end))
                 writer.append_frames(Frames(raw[None], [t0], [spec.exposure_us]))
