@@ -26,6 +26,12 @@ def _import_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--topic", help="a bag's event topic (default: the first with events)")
     p.add_argument(
+        "--chip",
+        help="an AEDAT 2.0 file's jAER chip class (DVS128, DAVIS240C, Davis346B, ...), used "
+        "instead of the one the file names (default: the file's, else inferred from the "
+        "address range)",
+    )
+    p.add_argument(
         "--width", type=int, help="an event text file's sensor width (default: inferred)"
     )
     p.add_argument("--height", type=int, help="an event text file's sensor height")
@@ -41,6 +47,7 @@ def _import(args: argparse.Namespace) -> int:
             args.file,
             args.output,
             topic=args.topic,
+            chip=args.chip,
             color_filter=args.color_filter,
             width=args.width,
             height=args.height,
@@ -51,6 +58,10 @@ def _import(args: argparse.Namespace) -> int:
         f"{args.output}: {summary.events:,} events, {summary.frames:,} frames, "
         f"{summary.imu:,} IMU samples, {summary.triggers:,} triggers ({summary.source})"
     )
+    for note in summary.notes:
+        print(note)
+    for warning in summary.warnings:
+        print(f"warning: {warning}", file=sys.stderr)
     return 0
 
 
@@ -58,7 +69,8 @@ IMPORT = Command(
     "import",
     help="convert a recording (AEDAT, ROS bag, text) into a session",
     description="Convert a recording into a session; the container is told by the content: "
-    "AEDAT 4 (DV), AEDAT 3.1 (cAER, libcaer), AEDAT 2.0 (jAER: DVS128, DAVIS240, DAVIS346), "
+    "AEDAT 4 (DV), AEDAT 3.1 (cAER, libcaer), AEDAT 2.0 (jAER: DVS128, DAVIS240, DAVIS346; "
+    "a file that names no chip: --chip, else the chip is inferred from the address range), "
     "ROS 1 and ROS 2 bags (dvs_msgs/EventArray, event_camera_msgs/EventPacket, with the "
     "camera's images and IMU), event text files (t x y p; the Event-Camera Dataset's "
     "folder, with calib.txt, groundtruth.txt, images.txt, imu.txt).",

@@ -32,6 +32,12 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fixture", metavar="DIR", help="also write a hardware-replay fixture")
     p.add_argument("--seed", type=int, help="random seed (default: the scene's)")
     p.add_argument(
+        "--sensor",
+        metavar="PROFILE",
+        help="a named sensor's thresholds and effects in place of the scene's: davis346 (a "
+        "DAVIS346 as published and measured, sim/scenes/README.md) or ideal",
+    )
+    p.add_argument(
         "--from-images",
         metavar="TRANSFORMS",
         help="a NeRF-style transforms.json: events from its posed images, in their order",
@@ -82,6 +88,7 @@ def _simulate(args: argparse.Namespace) -> int:
                 fps=args.fps,
                 color_filter=args.color_filter,
                 threshold=args.threshold,
+                profile=args.sensor,
                 scale=args.scale,
                 seed=args.seed or 0,
                 overwrite=args.force,
@@ -89,10 +96,12 @@ def _simulate(args: argparse.Namespace) -> int:
             )
         print(f"{args.output}: {n:,} events from {args.from_images}")
         return 0
-    from evcap.sim.scene import example_scene, load_scene
+    from evcap.sim.scene import example_scene, load_scene, with_sensor_profile
     from evcap.sim.simulate import simulate
 
     scene = load_scene(example_scene(args.scene))
+    if args.sensor:
+        scene = with_sensor_profile(scene, args.sensor)
     with progress_bar(f"simulating {scene.name}") as update:
         stats = simulate(
             scene,

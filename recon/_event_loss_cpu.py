@@ -23,11 +23,13 @@ CHUNKS = 64
 
 
 @numba.njit(cache=True, inline="always")
-def _window(before, on, off, i, j, p):
-    """(target C_on ON - C_off OFF, events) of pixel p between views i and j."""
+def _window(before, on, off, noise, w, i, j, p):
+    """(target C_on ON - C_off OFF, events) of pixel p between views i and j, less the
+    window's expected noise events ``noise[w]`` (ON, OFF)."""
     n_on = before[j, 2 * p + 1] - before[i, 2 * p + 1]
     n_off = before[j, 2 * p] - before[i, 2 * p]
-    return on[p] * n_on - off[p] * n_off, n_on + n_off
+    target = on[p] * (n_on - noise[w, 0]) - off[p] * (n_off - noise[w, 1])
+    return target, n_on + n_off
 
 
 @numba.njit(cache=True, inline="always")
@@ -56,7 +58,7 @@ def _error(pred, target, events, on, off, bound):
 
 
 @numba.njit(cache=True, parallel=True)
-def _forward(seen, weights, eps, before, pairs, on, off, mask, bound, sums):
+def _forward(seen, weights, eps, before, pairs, noise, on, off, mask, bound, sums):
     """sums [CHUNKS, windows, 4]: (error, pixels) with events, (error, pixels) without."""
     n = seen.shape[1]
     for chunk in numba.prange(CHUNKS):
@@ -67,7 +69,7 @@ def _forward(seen, weights, eps, before, pairs, on, off, mask, bound, sums):
             _log_views(seen, weights, eps, p, x, logs)
             for w in range(pairs.shape[0]):
                 i, j = pairs[w, 0], pairs[w, 1]
-                target, events = _window(before, on, off, i, j, p)
+                target, events = _window(before, on, off, noise, w, i, j, p)
                 err, _ = _error(logs[j] - logs[i], target, events, on[p], off[p], bound)
                 quiet = 2 if events == 0 else 0
                 sums[chunk, w, quiet] += err
@@ -75,7 +77,7 @@ def _forward(seen, weights, eps, before, pairs, on, off, mask, bound, sums):
 
 
 @numba.njit(cache=True, parallel=True)
-def _backward(seen, weights, eps, before, pairs, on, off, mask, bound, coeff, v_seen):
+def _backward(seen, weights, eps, before, pairs, noise, on, off, mask, bound, coeff, v_seen):
     """v_seen [K, P, 3]: the gradient of sum over windows of coeff[w, with events or not] *
     the pixel's error."""
     n = seen.shape[1]
@@ -92,7 +94,7 @@ def _backward(seen, weights, eps, before, pairs, on, off, mask, bound, coeff, v_
             v_logs[:] = 0.0
             for w in range(pairs.shape[0]):
                 i, j = pairs[w, 0], pairs[w, 1]
-                target, events = _window(before, on, off, i, j, p)
+                target, events = _window(before, on, off, noise, w, i, j, p)
                 _, d = _error(logs[j] - logs[i], target, events, on[p], off[p], bound)
                 g = d * coeff[w, 1 if events == 0 else 0]
                 v_logs[j] += g
@@ -106,13 +108,14 @@ def _backward(seen, weights, eps, before, pairs, on, off, mask, bound, coeff, v_
 
 class _EventLoss(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, seen, weights, eps, before, pairs, on, off, mask, bound, silent):
+    def forward(ctx, seen, weights, eps, before, pairs, noise, on, off, mask, bound, silent):
         arrays = (
             np.ascontiguousarray(seen.detach().numpy(), dtype=np.float64),
             np.ascontiguousarray(weights.numpy(), dtype=np.float64),
             float(eps),
             np.ascontiguousarray(before.numpy()),
             np.asarray(pairs, np.int64).reshape(-1, 2),
+            np.asarray(noise, np.float64).reshape(-1, 2),
             np.ascontiguousarray(on.numpy(), dtype=np.float64),
             np.ascontiguousarray(off.numpy(), dtype=np.float64),
             np.ascontiguousarray(mask.numpy()),
@@ -137,7 +140,7 @@ class _EventLoss(torch.autograd.Function):
         arrays, scale, dtype = ctx.state
         v_seen = np.empty_like(arrays[0])
         _backward(*arrays, scale * float(grad), v_seen)
-        return (torch.from_numpy(v_seen).to(dtype), *([None] * 9))
+        return (torch.from_numpy(v_seen).to(dtype), *([None] * 10))
 
 
 def event_loss_cpu(
@@ -146,6 +149,7 @@ def event_loss_cpu(
     eps: float,
     before: torch.Tensor,
     pairs: list[tuple[int, int]],
+    noise: np.ndarray,
     threshold_on: torch.Tensor,
     threshold_off: torch.Tensor,
     mask: torch.Tensor,
@@ -154,13 +158,15 @@ def event_loss_cpu(
 ) -> torch.Tensor:
     """The mean over the windows ``pairs`` (i, j) between the views ``seen`` ([P, 3] each, at
     the sensor's pixels) of losses.event_loss of log(L_j) - log(L_i) in each pixel's channel
-    (``channel_weights`` [P, 3]) against the events counted by ``before`` [K, 2 P]."""
+    (``channel_weights`` [P, 3]) against the events counted by ``before`` [K, 2 P], less each
+    window's expected noise events ``noise`` [windows, 2] (ON, OFF)."""
     return _EventLoss.apply(
         torch.stack(seen),
         channel_weights,
         eps,
         before,
         pairs,
+        noise,
         threshold_on,
         threshold_off,
         mask,

@@ -64,6 +64,9 @@ class RadianceConfig:
     # share of the event loss for pixels without events; None: one mean over all pixels, as
     # the method's sum (losses.event_loss)
     silent_weight: float | None = 0.3
+    # the calibration's noise rates in the event loss: each window's expected noise events
+    # (background activity, shot noise) taken from its counts before they are compared
+    noise_rates: bool = False
     # loss weights (method.md): L = L_event + 0.1 L_GW + 0.05 L_normal
     anchor_weight: float = 0.1
     anchor_level: float = 0.5  # g: the mean rendered brightness

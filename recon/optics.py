@@ -38,6 +38,10 @@ class SensorOptics:
     threshold_on: np.ndarray  # [H, W] float32
     threshold_off: np.ndarray
     hot_pixels: np.ndarray  # [H, W] bool
+    # each pixel's noise events a second, ON and OFF (the calibration's background activity,
+    # ON events, and shot noise, half of each polarity)
+    noise_on_hz: float = 0.0
+    noise_off_hz: float = 0.0
 
     @classmethod
     def from_session(cls, session: Session) -> SensorOptics:
@@ -47,7 +51,20 @@ class SensorOptics:
         K, model, dist = calibration.intrinsics(str(session.path))
         on, off = calibration.thresholds(str(session.path))
         s = session.sensor
-        return cls(s.width, s.height, K, model, dist, s.color_filter, on, off, calibration.hot())
+        shot = calibration.shot_noise_hz / 2
+        return cls(
+            s.width,
+            s.height,
+            K,
+            model,
+            dist,
+            s.color_filter,
+            on,
+            off,
+            calibration.hot(),
+            calibration.background_activity_hz + shot,
+            shot,
+        )
 
     def undistorted(self) -> np.ndarray:
         """[H * W, 2] normalized pinhole coordinates (x/z, y/z) of each sensor pixel's centre."""

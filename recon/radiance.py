@@ -415,6 +415,7 @@ def windows_event_loss(
     ]
     if not pairs:
         return seen[0].sum() * 0
+    noise = expected_noise(data, config, frames, pairs)
     if seen[0].device.type == "cpu":
         from evcap.recon._event_loss_cpu import event_loss_cpu
 
@@ -424,13 +425,28 @@ def windows_event_loss(
             config.log_eps,
             before,
             pairs,
+            noise,
             w.threshold_on,
             w.threshold_off,
             data.mask,
             config.zero_events,
             config.silent_weight,
         )
-    return event_loss_torch(data, config, before, pairs, seen)
+    return event_loss_torch(data, config, before, pairs, noise, seen)
+
+
+def expected_noise(
+    data: TrainingData, config: RadianceConfig, frames: np.ndarray, pairs: list[tuple[int, int]]
+) -> np.ndarray:
+    """[windows, 2] the noise events (ON, OFF) a pixel fires in each window at the
+    calibration's rates (config.noise_rates; else 0)."""
+    out = np.zeros((len(pairs), 2))
+    if config.noise_rates:
+        t = data.windows.frame_times[np.asarray(frames)]
+        seconds = np.array([(t[j] - t[i]) * 1e-6 for i, j in pairs])
+        out[:, 0] = data.optics.noise_on_hz * seconds
+        out[:, 1] = data.optics.noise_off_hz * seconds
+    return out
 
 
 def event_loss_torch(
@@ -438,14 +454,16 @@ def event_loss_torch(
     config: RadianceConfig,
     before: torch.Tensor,
     pairs: list[tuple[int, int]],
+    noise: np.ndarray,
     seen: list[torch.Tensor],
 ) -> torch.Tensor:
     """windows_event_loss in PyTorch operations: losses.event_loss window by window."""
     w = data.windows
     logs = [log_radiance((s * data.channel_weights).sum(1), config.log_eps) for s in seen]
     event = []
-    for i, j in pairs:
+    for (i, j), (mu_on, mu_off) in zip(pairs, noise, strict=True):
         target, counts = w.change(*w.between(before[i], before[j]))
+        target = target - (w.threshold_on * float(mu_on) - w.threshold_off * float(mu_off))
         event.append(
             event_loss(
                 logs[j] - logs[i],

@@ -38,6 +38,7 @@ from evcap.records import GroundTruth, Poses, TruthViews
 from evcap.session import SensorInfo, SessionWriter
 from evcap.sim.events import PixelArray
 from evcap.sim.sensor import ChannelMap, true_calibration
+from evcap.sim.sensor_profiles import SensorProfile, sensor_profile
 from evcap.sim.simulate import EPOCH_US
 
 BLENDER_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -329,6 +330,7 @@ def simulate_from_images(
     color_filter: str = "RGBG",
     threshold: float = 0.2,
     effects: dict | None = None,
+    profile: str | SensorProfile | None = None,
     scale: float = 1.0,
     max_step_px: float = 1.0,
     dark_level: float = 1e-3,
@@ -340,7 +342,9 @@ def simulate_from_images(
     """Events from the posed images into the session ``output``; returns the event count.
     The camera moves through ``transforms``' views in order; ``held_out``, a second transforms
     file, gives the held-out views (see _held_out). RGBA images are composited over the gray
-    level ``background`` (linear; 1 is the release's white)."""
+    level ``background`` (linear; 1 is the release's white). ``profile``: a named sensor
+    (sim/sensor_profiles.py) whose thresholds and effects replace ``threshold`` and
+    ``effects``."""
     transforms, output = Path(transforms), Path(output)
     if output.exists() and not overwrite:
         raise InputError(f"{output} exists; choose another name or pass --force")
@@ -354,7 +358,11 @@ def simulate_from_images(
     h, w = first["radiance"].shape[:2]
     rng = np.random.default_rng(seed)
     channels = ChannelMap(w, h, color_filter)
-    pixels = PixelArray(w * h, threshold, threshold, effects or {}, rng)
+    on = off = threshold
+    if profile is not None:
+        named = sensor_profile(profile)
+        on, off, effects = named.threshold_on, named.threshold_off, named.effects
+    pixels = PixelArray(w * h, on, off, effects or {}, rng)
     sensor = SensorInfo("simulated", w, h, color_filter, "SIM-images", EPOCH_US)
     n_events = 0
     gt_t = [0]

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from evcap.errors import InputError, InputNotFoundError
 from evcap.events import check_color_filter
+from evcap.sim.sensor_profiles import SensorProfile, sensor_profile
 from evcap.toml_file import Table, read_toml
 
 
@@ -100,6 +101,7 @@ class SensorSpec:
     # rates, hot pixels): scenes giving the same seed (and effects) simulate the same physical
     # sensor. None: they are drawn from the scene's seed, as before this key existed
     seed: int | None = None
+    profile: str = "ideal"  # the named sensor the thresholds and effects start from
 
 
 @dataclass(frozen=True)
@@ -352,6 +354,21 @@ def example_scene(name_or_path: str | os.PathLike) -> Path:
     return example
 
 
+def with_sensor_profile(scene: Scene, name: str | SensorProfile) -> Scene:
+    """``scene`` seen by the named sensor (sim/sensor_profiles.py): its thresholds and effects,
+    in place of the scene's own (and of a measured sensor the scene copies)."""
+    profile = sensor_profile(name)
+    sensor = dataclasses.replace(
+        scene.sensor,
+        threshold_on=profile.threshold_on,
+        threshold_off=profile.threshold_off,
+        effects={k: dict(v) for k, v in profile.effects.items()},
+        calibration=None,
+        profile=profile.name,
+    )
+    return dataclasses.replace(scene, sensor=sensor)
+
+
 def load_scene(path: str | os.PathLike) -> Scene:
     """Read and check a scene file."""
     path = Path(path)
@@ -402,9 +419,12 @@ def load_scene(path: str | os.PathLike) -> Scene:
     light.done()
 
     sensor_t = top.table("sensor")
-    c = sensor_t.get("contrast_threshold", float, 0.2)
+    profile = sensor_profile(sensor_t.get("profile", str, "ideal"))
+    c_on, c_off = profile.threshold_on, profile.threshold_off
+    if (c := sensor_t.get("contrast_threshold", float)) is not None:
+        c_on = c_off = c
     cal = sensor_t.get("calibration", str)
-    effects = {}
+    effects = {name: dict(params) for name, params in profile.effects.items()}
     for name, params in sensor_t.get("effects", dict, {}).items():
         if name not in EFFECTS:
             raise InputError(
@@ -421,15 +441,16 @@ def load_scene(path: str | os.PathLike) -> Scene:
     sensor = SensorSpec(
         color_filter=check_color_filter(sensor_t.get("color_filter", str, "RGBG")),
         threshold_on=_positive(
-            sensor_t.where, "threshold_on", sensor_t.get("threshold_on", float, c)
+            sensor_t.where, "threshold_on", sensor_t.get("threshold_on", float, c_on)
         ),
         threshold_off=_positive(
-            sensor_t.where, "threshold_off", sensor_t.get("threshold_off", float, c)
+            sensor_t.where, "threshold_off", sensor_t.get("threshold_off", float, c_off)
         ),
         dark_level=_positive(sensor_t.where, "dark_level", sensor_t.get("dark_level", float, 1e-3)),
         effects=effects,
         calibration=_resolve(base, cal, f"{sensor_t.where}: calibration") if cal else None,
         seed=sensor_t.get("seed", int),
+        profile=profile.name,
     )
     sensor_t.done()
 

@@ -511,6 +511,7 @@ def simulate(
         "scene_file": str(scene.path),
         "seed": sim.seed,
         "effects": json.dumps(sim.effects),
+        "sensor_profile": scene.sensor.profile,
     }
     # written under another name and renamed when whole: an interrupted simulation leaves
     # nothing half-made (nor harms what ``output`` held), and is repeated exactly by running

@@ -2,7 +2,9 @@
 
 An AEDAT 2.0 file is ASCII header lines that start with '#' (the chip class on the
 '# AEChip:' line), then big-endian records of an int32 address and an int32 timestamp (µs).
-What an address means depends on the chip class (jAER's event extractors):
+What an address means depends on the chip class (jAER's event extractors); old files (DVS128
+recordings from before jAER wrote the '# AEChip:' line) name none, so the chip is given
+(``--chip``) or inferred from the range of the addresses:
 
 - DVS128: bit 0 polarity (0 = ON), bits 1-7 x, bits 8-14 y; bit 15 an external (sync) input.
 - DAVIS240 and DAVIS346 (jAER's DavisChip): bit 31 clear is a DVS event (bits 22-30 y, 12-21
@@ -36,6 +38,7 @@ KNOWN_CHIPS = "DVS128, DAVIS240A/B/C, Davis346 (A, B, C, blue, red, ...)"
 
 _RECORD = np.dtype([("address", ">u4"), ("t", ">u4")])
 _BLOCK = 1 << 22  # records per block (32 MB)
+_INFER_RECORDS = 1 << 22  # records scanned to infer the chip of a file that names none
 _MAX_HEADER_LINE = 1 << 20
 _WRAP = 1 << 32
 
@@ -80,11 +83,34 @@ def chip_for_class(chip_class: str) -> Chip:
     )
 
 
+def infer_chip(address: np.ndarray) -> Chip | None:
+    """The chip whose address layout and sensor fit the record addresses ``address``, None if
+    none does: DVS128 when no address uses bits 16-30, else DAVIS240 or DAVIS346 by the
+    largest x and y of the DVS events and APS samples."""
+    a = np.asarray(address).astype(np.uint32)
+    if a.size == 0:
+        return None
+    # bit 31 is a special event in the DVS128 decoder too, so it does not rule DVS128 out
+    if not (a & 0x7FFF0000).any():
+        return chip_for_class("DVS128")
+    aps_or_imu = (a & 0x80000000) != 0
+    pixel = np.where(aps_or_imu, (a & 0xC00) != 0xC00, (a & 0x400) == 0)  # not IMU, not external
+    if not pixel.any():
+        return None
+    x_max = int(((a[pixel] >> 12) & 0x3FF).max())
+    y_max = int(((a[pixel] >> 22) & 0x1FF).max())
+    for name in ("DAVIS240", "DAVIS346"):
+        chip = chip_for_class(name)
+        if x_max < chip.width and y_max < chip.height:
+            return chip
+    return None
+
+
 @dataclass(frozen=True)
 class Aedat2Header:
     """What the ASCII header of an AEDAT 2.0 file says."""
 
-    chip_class: str  # from the '# AEChip:' line
+    chip_class: str | None  # from the '# AEChip:' line, None if there is none
     data_start: int  # byte where the records begin
     start_time_us: int | None  # Unix µs when jAER started writing data, None if not stated
 
@@ -124,11 +150,6 @@ def read_header(path: str | os.PathLike) -> Aedat2Header:
                 created_ms = int(m.group(1))
             elif text.lower() == "end of ascii header":
                 break
-    if chip_class is None:
-        raise ForeignFormatError(
-            f"{path} has no '# AEChip:' header line, so its address layout is unknown "
-            f"(evcap reads {KNOWN_CHIPS})"
-        )
     ms = start_ms if start_ms is not None else created_ms
     return Aedat2Header(chip_class, pos, None if ms is None else ms * 1000)
 
@@ -253,6 +274,7 @@ def import_aedat2(
     src: str | os.PathLike,
     dst: str | os.PathLike,
     *,
+    chip: str | None = None,
     color_filter: str | None = None,
     overwrite: bool = False,
     progress: Callable[[int, int], None] | None = None,
@@ -267,42 +289,58 @@ def import_aedat2(
     first record; t_offset_us is jAER's DataStartTime where the header states it, else 0.
     ``color_filter`` is the sensor's (the chip class does not state it; default MONO).
 
+    ``chip`` (a jAER chip class, e.g. DVS128, DAVIS240C, Davis346B) is used instead of the one
+    the file names (with a warning where they differ); a file that names none and no ``chip``:
+    the chip is inferred from the range of the first records' addresses. The summary's notes
+    and the session's ``source_chip_from`` say where the chip came from.
+
     The session is written to a temporary name and renamed when complete. A file that ends
     inside a record: the whole records are imported, then ForeignFormatError says where it
     breaks (its ``summary`` attribute holds the ImportSummary). ``progress(done, total)``
     counts bytes.
     """
     src, dst = Path(src), Path(dst)
+    given_chip = None
+    if chip is not None:
+        try:
+            given_chip = chip_for_class(chip)
+        except ForeignFormatError:
+            raise InputError(
+                f"--chip {chip.strip()!r} is not a jAER chip class evcap knows: it reads "
+                f"{KNOWN_CHIPS}"
+            ) from None
     check_output(dst, overwrite)
     if color_filter is not None:
         check_color_filter(color_filter)
     header = read_header(src)
-    try:
-        chip = chip_for_class(header.chip_class)
-    except ForeignFormatError as e:
-        raise ForeignFormatError(f"{src}: {e}") from None
     size = src.stat().st_size
     n_records = (size - header.data_start) // _RECORD.itemsize
     whole_end = header.data_start + n_records * _RECORD.itemsize
+    records = _records(src, header.data_start, n_records)
+    summary = ImportSummary()
+    the_chip, chip_from = _choose_chip(src, header, given_chip, records, summary)
     t_offset = header.start_time_us or 0
-    sensor = SensorInfo(chip.name, chip.width, chip.height, color_filter or "MONO", "", t_offset)
+    sensor = SensorInfo(
+        the_chip.name, the_chip.width, the_chip.height, color_filter or "MONO", "", t_offset
+    )
     attrs = {
         "source_file": src.name,
         "source_format": "AEDAT 2.0",
-        "source_chip_class": header.chip_class,
+        "source_chip_from": chip_from,
     }
-    summary = ImportSummary(source=f"AEDAT 2.0, {chip.name}")
+    if header.chip_class is not None:
+        attrs["source_chip_class"] = header.chip_class
+    summary.source = f"AEDAT 2.0, {the_chip.name}"
     with (
         partial_output(dst) as tmp,
         SessionWriter(tmp, sensor, attrs=attrs, overwrite=True) as writer,
     ):
-        decoder = _Decoder(src, chip, sensor, writer, summary)
-        records = _records(src, header.data_start, n_records)
+        decoder = _Decoder(src, the_chip, sensor, writer, summary)
         pos = 0
         while pos < n_records:
             block = records[pos : pos + _BLOCK]
             if pos + block.size < n_records:
-                block = block[: _whole_imu_samples(block, chip)]
+                block = block[: _whole_imu_samples(block, the_chip)]
             decoder.decode(block, header.data_start + pos * _RECORD.itemsize)
             pos += block.size
             if progress:
@@ -316,6 +354,45 @@ def import_aedat2(
         e.summary = summary
         raise e
     return summary
+
+
+def _choose_chip(
+    src: Path,
+    header: Aedat2Header,
+    given: Chip | None,
+    records: np.ndarray,
+    summary: ImportSummary,
+) -> tuple[Chip, str]:
+    """The chip to decode ``src`` as and where it came from ("--chip", "header" or "address
+    range"); adds a note (and a warning where --chip overrides the file) to ``summary``."""
+    stated = header.chip_class
+    if given is not None:
+        if stated is None:
+            summary.notes.append(f"chip {given.name} (from --chip; the file states none)")
+        elif stated.rsplit(".", 1)[-1].lower() == given.name.lower():
+            summary.notes.append(f"chip {given.name} (from --chip, as the file states)")
+        else:
+            summary.notes.append(f"chip {given.name} (from --chip)")
+            summary.warnings.append(
+                f"the file states chip {stated}; {given.name} from --chip is used instead"
+            )
+        return given, "--chip"
+    if stated is not None:
+        try:
+            return chip_for_class(stated), "header"
+        except ForeignFormatError as e:
+            raise ForeignFormatError(f"{src}: {e}; pass --chip to read it as one of them") from None
+    inferred = infer_chip(records[:_INFER_RECORDS]["address"])
+    if inferred is None:
+        why = "its addresses fit none of the chips" if records.size else "no records"
+        raise ForeignFormatError(
+            f"{src} has no '# AEChip:' header line and {why}; pass --chip (evcap reads "
+            f"{KNOWN_CHIPS})"
+        )
+    summary.notes.append(
+        f"chip {inferred.name} (inferred from the address range; pass --chip to choose)"
+    )
+    return inferred, "address range"
 
 
 def _records(path: Path, offset: int, n: int) -> np.ndarray:

@@ -4,7 +4,7 @@ they write their output."""
 from __future__ import annotations
 
 import contextlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from evcap.atomic_write import atomic_path
@@ -20,6 +20,8 @@ class ImportSummary:
     imu: int = 0
     triggers: int = 0
     source: str = ""  # the container and sensor, as the source states them
+    notes: list[str] = field(default_factory=list)  # for the user: where a value came from
+    warnings: list[str] = field(default_factory=list)  # for the user to check
 
 
 # the sensors the sources name, with their pixel arrays (width, height)

@@ -75,6 +75,7 @@ def import_recording(
     dst: str | os.PathLike,
     *,
     topic: str | None = None,
+    chip: str | None = None,
     color_filter: str | None = None,
     width: int | None = None,
     height: int | None = None,
@@ -82,10 +83,19 @@ def import_recording(
     progress: Callable[[int, int], None] | None = None,
 ) -> ImportSummary:
     """Import the recording ``src`` (any container of ``detect``) into the session ``dst``.
-    ``topic``: a bag's event topic; ``width``, ``height``: an event text file's sensor size."""
+    ``topic``: a bag's event topic; ``chip``: an AEDAT 2.0 file's jAER chip class;
+    ``width``, ``height``: an event text file's sensor size."""
     container = detect(src)
-    given = {"--topic": topic is not None, "--width/--height": (width, height) != (None, None)}
-    takes = {"--topic": container in ("ros1", "ros2"), "--width/--height": container == "text"}
+    given = {
+        "--topic": topic is not None,
+        "--chip": chip is not None,
+        "--width/--height": (width, height) != (None, None),
+    }
+    takes = {
+        "--topic": container in ("ros1", "ros2"),
+        "--chip": container == "aedat2",
+        "--width/--height": container == "text",
+    }
     for option, used in given.items():
         if used and not takes[option]:
             raise InputError(f"{option} is not for {src} (its container: {container})")
@@ -102,7 +112,7 @@ def import_recording(
         case "aedat2":
             from evcap.importers.aedat2 import import_aedat2
 
-            return import_aedat2(src, dst, **common)
+            return import_aedat2(src, dst, chip=chip, **common)
         case "ros1" | "ros2":
             from evcap.importers.ros_bag import import_ros_bag
 

@@ -189,6 +189,7 @@ def test_unknown_chip_class_is_refused(tmp_path):
         import_aedat2(src, tmp_path / "s.h5")
     message = str(e.value)
     assert "Tmpdiff128" in message and "DVS128" in message and "DAVIS240" in message
+    assert "pass --chip" in message
     assert "\n" not in message and not (tmp_path / "s.h5").exists()
 
 
@@ -220,8 +221,10 @@ def test_header_problems(tmp_path):
     bad.write_bytes(b"#!AER-DAT3.1\r\n#Format: RAW\r\n")
     with pytest.raises(ForeignFormatError, match="AEDAT 3.1, not AEDAT 2.0"):
         import_aedat2(bad, tmp_path / "s.h5")
-    bad.write_bytes(b"#!AER-DAT2.0\r\n# no chip here\r\n" + bytes(16))
-    with pytest.raises(ForeignFormatError, match="no '# AEChip:' header line"):
+    # no '# AEChip:' line and addresses that fit no chip (headerless files that fit one are
+    # read: test_aedat2_headerless.py)
+    bad.write_bytes(b"#!AER-DAT2.0\r\n# no chip here\r\n" + (0x7FFFF000).to_bytes(4) + bytes(4))
+    with pytest.raises(ForeignFormatError, match="no '# AEChip:' header line.*pass --chip"):
         import_aedat2(bad, tmp_path / "s.h5")
     bad.write_bytes(b"#!AER-DAT2.0\r\n# AEChip: eu.seebetter.ini.chips.davis.DAVIS240C")
     with pytest.raises(ForeignFormatError, match="truncated: it ends inside its header"):

@@ -17,9 +17,11 @@ from evcap.recon._event_loss_cpu import event_loss_cpu
 from evcap.recon._sample_cpu import Sampler
 from evcap.recon._surface_terms_cpu import surface_terms_cpu
 from evcap.recon.event_windows import EventWindows
-from evcap.recon.optics import CHANNEL_WEIGHTS
-from evcap.recon.radiance import event_loss_torch
+from evcap.recon.optics import CHANNEL_WEIGHTS, SensorOptics
+from evcap.recon.radiance import event_loss_torch, expected_noise
 from evcap.recon.shading import cube_lookup, mip_chain, prefiltered
+from evcap.records import Calibration
+from evcap.session import SensorInfo, Session, SessionWriter
 
 
 def surface_maps(seed: int = 0) -> list[torch.Tensor]:
@@ -195,7 +197,8 @@ def test_event_counts_from_the_table_match_a_plain_count(seed):
 
 @pytest.mark.parametrize("zero_events", ["target", "bound"])
 @pytest.mark.parametrize("silent_weight", [None, 0.3])
-def test_event_loss_matches_the_window_by_window_one(zero_events, silent_weight):
+@pytest.mark.parametrize("noisy", [False, True])
+def test_event_loss_matches_the_window_by_window_one(zero_events, silent_weight, noisy):
     width, height, times, t, codes, starts = random_events(3)
     g = torch.Generator().manual_seed(4)
     n = width * height
@@ -220,13 +223,16 @@ def test_event_loss_matches_the_window_by_window_one(zero_events, silent_weight)
     views[2][5:8] = -0.01
     ref = [v.clone().requires_grad_(True) for v in views]
     fast = [v.clone().requires_grad_(True) for v in views]
-    expected = event_loss_torch(data, config, before, pairs, ref)
+    # expected noise events per window (ON, OFF), as the calibration's rates give them
+    noise = np.random.default_rng(5).uniform(0, 0.8, (len(pairs), 2)) * noisy
+    expected = event_loss_torch(data, config, before, pairs, noise, ref)
     got = event_loss_cpu(
         fast,
         data.channel_weights,
         config.log_eps,
         before,
         pairs,
+        noise,
         on,
         off,
         data.mask,
@@ -238,3 +244,33 @@ def test_event_loss_matches_the_window_by_window_one(zero_events, silent_weight)
     (2.0 * got).backward()
     for a, b in zip(ref, fast, strict=True):
         torch.testing.assert_close(b.grad, a.grad, rtol=1e-4, atol=1e-7)
+
+
+def test_expected_noise_follows_the_rates_and_the_window_lengths(tmp_path):
+    """The calibration's background activity (ON) and shot noise (half each polarity), as
+    the reconstruction reads them, times each window's length; nothing unless asked."""
+    path = tmp_path / "s.h5"
+    with SessionWriter(path, SensorInfo("simulated", 8, 6)):
+        pass
+    shape = (6, 8)
+    Calibration(
+        8,
+        6,
+        "ground truth",
+        K=np.array([[10.0, 0, 4], [0, 10, 3], [0, 0, 1]]),
+        threshold_on=np.full(shape, 0.2),
+        threshold_off=np.full(shape, 0.2),
+        background_activity_hz=1.5,
+        shot_noise_hz=1.0,
+    ).write(path)
+    with Session.open(path) as s:
+        optics = SensorOptics.from_session(s)
+    assert (optics.noise_on_hz, optics.noise_off_hz) == (2.0, 0.5)
+    data = SimpleNamespace(
+        windows=SimpleNamespace(frame_times=np.array([0, 1000, 5000, 105_000])), optics=optics
+    )
+    frames, pairs = np.array([0, 2, 3]), [(0, 1), (0, 2), (1, 2)]
+    asked = dataclasses.replace(cfg.preset("tiny"), noise_rates=True)
+    expected = [[0.01, 0.0025], [0.21, 0.0525], [0.2, 0.05]]
+    np.testing.assert_allclose(expected_noise(data, asked, frames, pairs), expected)
+    assert not expected_noise(data, cfg.preset("tiny"), frames, pairs).any()
