@@ -25,7 +25,7 @@ import json
 import shutil
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -50,11 +50,10 @@ def _alone(name: str, **effect: dict) -> SensorProfile:
 @dataclass(frozen=True)
 class Row:
     sensor: SensorProfile
-    calibration: str = "truth"  # "truth", or "nominal": uniform thresholds nominal_on / _off
+    calibration: str = "truth"  # "truth", or "nominal": uniform thresholds (below)
     nominal: tuple[float, float] | None = None  # the nominal thresholds (None: the sensor's)
     noise_rates: bool = False  # the calibration's noise rates in the event loss
     pose_noise_deg: float = 0.0
-    settings: dict = field(default_factory=dict)
 
 
 DIM = SensorProfile(  # v2e's "noisy" preset: a dim scene
