@@ -329,6 +329,12 @@ def _reconstruct_arguments(p: argparse.ArgumentParser) -> None:
         choices=ZERO_EVENTS,
         help="a pixel without events means no change (target) or |change| < C (bound)",
     )
+    p.add_argument(
+        "--refractory-bound",
+        action="store_true",
+        help="a window whose pixel fired within twice the calibration's refractory period "
+        "bounds the change's size from below instead of giving it (the period's change is lost)",
+    )
     p.add_argument("--material-iterations", type=int, metavar="N", help="stage II steps")
     for effect, what in (("visibility", "shadows"), ("indirect", "light from other surfaces")):
         p.add_argument(
@@ -385,6 +391,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
             material_iterations=args.material_iterations,
             seed=args.seed,
             zero_events=args.zero_events,
+            radiance_settings={"refractory_bound": True} if args.refractory_bound else None,
             visibility="off" if "visibility" in without else args.visibility,
             indirect="off" if "indirect" in without else args.indirect,
             ablate=tuple(ABLATION_FLAGS[w] for w in sorted(without) if w in ABLATION_FLAGS),

@@ -53,6 +53,7 @@ class Row:
     calibration: str = "truth"  # "truth", or "nominal": uniform thresholds (below)
     nominal: tuple[float, float] | None = None  # the nominal thresholds (None: the sensor's)
     noise_rates: bool = False  # the calibration's noise rates in the event loss
+    refractory_bound: bool = False  # crowded events' windows a lower bound (config.py)
     pose_noise_deg: float = 0.0
 
 
@@ -68,6 +69,7 @@ DIM = SensorProfile(  # v2e's "noisy" preset: a dim scene
     },
 )
 HOT = _alone("hot pixels", hot_pixels={"count": 20, "rate_hz": 200.0})
+REFRACTORY = _alone("refractory", refractory=DAVIS346.effects["refractory"])
 SPREAD = _alone("threshold spread", threshold_spread=DAVIS346.effects["threshold_spread"])
 
 # in the order they are run: what the issue asks first
@@ -77,6 +79,7 @@ ROWS: dict[str, Row] = {
     "davis346, uncalibrated": Row(DAVIS346, "nominal"),
     "davis346, uncalibrated 0.2": Row(DAVIS346, "nominal", (0.2, 0.2)),
     "davis346, noise rates": Row(DAVIS346, noise_rates=True),
+    "davis346, refractory bound": Row(DAVIS346, refractory_bound=True),
     "pose noise 0.5 deg": Row(IDEAL, pose_noise_deg=0.5),
     "pose noise 1 deg": Row(IDEAL, pose_noise_deg=1.0),
     "pose noise 2 deg": Row(IDEAL, pose_noise_deg=2.0),
@@ -89,7 +92,8 @@ ROWS: dict[str, Row] = {
     "background activity 0.1 Hz": Row(
         _alone("background", background_activity=DAVIS346.effects["background_activity"])
     ),
-    "refractory 0.5 ms": Row(_alone("refractory", refractory=DAVIS346.effects["refractory"])),
+    "refractory 0.5 ms": Row(REFRACTORY),
+    "refractory 0.5 ms, bound": Row(REFRACTORY, refractory_bound=True),
     "bandwidth 300 Hz": Row(_alone("bandwidth", bandwidth=DAVIS346.effects["bandwidth"])),
     "hot pixels 20 at 200 Hz": Row(HOT),
     "hot pixels 20 at 200 Hz, uncalibrated": Row(HOT, "nominal"),
@@ -249,7 +253,10 @@ def run_row(scene: str, name: str, args: argparse.Namespace) -> dict:
             iterations=args.iterations,
             resolution=args.resolution,
             material_iterations=args.material_iterations,
-            radiance_settings={"noise_rates": row.noise_rates},
+            radiance_settings={
+                "noise_rates": row.noise_rates,
+                "refractory_bound": row.refractory_bound,
+            },
             refine_poses="off",
         )
         seconds = time.perf_counter() - started

@@ -23,13 +23,17 @@ CHUNKS = 64
 
 
 @numba.njit(cache=True, inline="always")
-def _window(before, on, off, noise, w, i, j, p):
-    """(target C_on ON - C_off OFF, events) of pixel p between views i and j, less the
-    window's expected noise events ``noise[w]`` (ON, OFF)."""
+def _window(before, crowded, on, off, noise, w, i, j, p):
+    """(target C_on ON - C_off OFF, events, whether some were crowded) of pixel p between
+    views i and j, less the window's expected noise events ``noise[w]`` (ON, OFF);
+    ``crowded`` [K, 2 P] counts the crowded events ([K, 0]: none counted)."""
     n_on = before[j, 2 * p + 1] - before[i, 2 * p + 1]
     n_off = before[j, 2 * p] - before[i, 2 * p]
     target = on[p] * (n_on - noise[w, 0]) - off[p] * (n_off - noise[w, 1])
-    return target, n_on + n_off
+    near = False
+    if crowded.shape[1] > 0:
+        near = crowded[j, 2 * p + 1] + crowded[j, 2 * p] > crowded[i, 2 * p + 1] + crowded[i, 2 * p]
+    return target, n_on + n_off, near
 
 
 @numba.njit(cache=True, inline="always")
@@ -43,9 +47,10 @@ def _log_views(seen, weights, eps, p, x, logs):
 
 
 @numba.njit(cache=True, inline="always")
-def _error(pred, target, events, on, off, bound):
+def _error(pred, target, events, near, on, off, bound):
     """(|pred - target|, or for a pixel without events under ``bound`` the hinge outside
-    [-C_off, C_on]; its derivative)."""
+    [-C_off, C_on], or for one with crowded events (``near``) the hinge short of the target;
+    its derivative)."""
     if bound and events == 0:
         err, d = 0.0, 0.0
         if pred - on > 0:
@@ -54,11 +59,15 @@ def _error(pred, target, events, on, off, bound):
             err, d = err - pred - off, d - 1.0
         return err, d
     e = pred - target
+    if near and target > 0:
+        return (-e, -1.0) if e < 0 else (0.0, 0.0)
+    if near and target < 0:
+        return (e, 1.0) if e > 0 else (0.0, 0.0)
     return abs(e), 1.0 if e > 0 else -1.0 if e < 0 else 0.0
 
 
 @numba.njit(cache=True, parallel=True)
-def _forward(seen, weights, eps, before, pairs, noise, on, off, mask, bound, sums):
+def _forward(seen, weights, eps, before, crowded, pairs, noise, on, off, mask, bound, sums):
     """sums [CHUNKS, windows, 4]: (error, pixels) with events, (error, pixels) without."""
     n = seen.shape[1]
     for chunk in numba.prange(CHUNKS):
@@ -69,15 +78,17 @@ def _forward(seen, weights, eps, before, pairs, noise, on, off, mask, bound, sum
             _log_views(seen, weights, eps, p, x, logs)
             for w in range(pairs.shape[0]):
                 i, j = pairs[w, 0], pairs[w, 1]
-                target, events = _window(before, on, off, noise, w, i, j, p)
-                err, _ = _error(logs[j] - logs[i], target, events, on[p], off[p], bound)
+                target, events, near = _window(before, crowded, on, off, noise, w, i, j, p)
+                err, _ = _error(logs[j] - logs[i], target, events, near, on[p], off[p], bound)
                 quiet = 2 if events == 0 else 0
                 sums[chunk, w, quiet] += err
                 sums[chunk, w, quiet + 1] += 1.0
 
 
 @numba.njit(cache=True, parallel=True)
-def _backward(seen, weights, eps, before, pairs, noise, on, off, mask, bound, coeff, v_seen):
+def _backward(
+    seen, weights, eps, before, crowded, pairs, noise, on, off, mask, bound, coeff, v_seen
+):
     """v_seen [K, P, 3]: the gradient of sum over windows of coeff[w, with events or not] *
     the pixel's error."""
     n = seen.shape[1]
@@ -94,8 +105,8 @@ def _backward(seen, weights, eps, before, pairs, noise, on, off, mask, bound, co
             v_logs[:] = 0.0
             for w in range(pairs.shape[0]):
                 i, j = pairs[w, 0], pairs[w, 1]
-                target, events = _window(before, on, off, noise, w, i, j, p)
-                _, d = _error(logs[j] - logs[i], target, events, on[p], off[p], bound)
+                target, events, near = _window(before, crowded, on, off, noise, w, i, j, p)
+                _, d = _error(logs[j] - logs[i], target, events, near, on[p], off[p], bound)
                 g = d * coeff[w, 1 if events == 0 else 0]
                 v_logs[j] += g
                 v_logs[i] -= g
@@ -108,12 +119,16 @@ def _backward(seen, weights, eps, before, pairs, noise, on, off, mask, bound, co
 
 class _EventLoss(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, seen, weights, eps, before, pairs, noise, on, off, mask, bound, silent):
+    def forward(
+        ctx, seen, weights, eps, before, crowded, pairs, noise, on, off, mask, bound, silent
+    ):
+        none = np.zeros((len(before), 0), np.int64)
         arrays = (
             np.ascontiguousarray(seen.detach().numpy(), dtype=np.float64),
             np.ascontiguousarray(weights.numpy(), dtype=np.float64),
             float(eps),
             np.ascontiguousarray(before.numpy()),
+            none if crowded is None else np.ascontiguousarray(crowded.numpy()),
             np.asarray(pairs, np.int64).reshape(-1, 2),
             np.asarray(noise, np.float64).reshape(-1, 2),
             np.ascontiguousarray(on.numpy(), dtype=np.float64),
@@ -121,7 +136,7 @@ class _EventLoss(torch.autograd.Function):
             np.ascontiguousarray(mask.numpy()),
             bool(bound),
         )
-        windows = len(arrays[4])
+        windows = len(arrays[5])
         sums = np.zeros((CHUNKS, windows, 4))
         _forward(*arrays, sums)
         loud, n_loud, quiet, n_quiet = sums.sum(0).T
@@ -140,7 +155,7 @@ class _EventLoss(torch.autograd.Function):
         arrays, scale, dtype = ctx.state
         v_seen = np.empty_like(arrays[0])
         _backward(*arrays, scale * float(grad), v_seen)
-        return (torch.from_numpy(v_seen).to(dtype), *([None] * 10))
+        return (torch.from_numpy(v_seen).to(dtype), *([None] * 11))
 
 
 def event_loss_cpu(
@@ -155,16 +170,19 @@ def event_loss_cpu(
     mask: torch.Tensor,
     zero_events: ZeroEvents,
     silent_weight: float | None,
+    crowded: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The mean over the windows ``pairs`` (i, j) between the views ``seen`` ([P, 3] each, at
     the sensor's pixels) of losses.event_loss of log(L_j) - log(L_i) in each pixel's channel
     (``channel_weights`` [P, 3]) against the events counted by ``before`` [K, 2 P], less each
-    window's expected noise events ``noise`` [windows, 2] (ON, OFF)."""
+    window's expected noise events ``noise`` [windows, 2] (ON, OFF), the crowded ones counted
+    by ``crowded`` [K, 2 P] (None: none)."""
     return _EventLoss.apply(
         torch.stack(seen),
         channel_weights,
         eps,
         before,
+        crowded,
         pairs,
         noise,
         threshold_on,

@@ -67,6 +67,10 @@ class RadianceConfig:
     # the calibration's noise rates in the event loss: each window's expected noise events
     # (background activity, shot noise) taken from its counts before they are compared
     noise_rates: bool = False
+    # a window whose pixel fired crowded events (closer than twice the calibration's
+    # refractory period) measures only part of its change: its C_on ON - C_off OFF is then a
+    # lower bound on the change's size, in its direction, not the change itself
+    refractory_bound: bool = False
     # loss weights (method.md): L = L_event + 0.1 L_GW + 0.05 L_normal
     anchor_weight: float = 0.1
     anchor_level: float = 0.5  # g: the mean rendered brightness

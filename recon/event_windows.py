@@ -11,6 +11,11 @@ windows hold, and the table lives on the training device: no event is touched du
 training. Memory: 16 bytes per distinct (pixel, polarity, frame interval) that has events, at
 most 16 bytes an event (docs/reconstruction.md gives the paper's scale).
 
+A pixel's events closer together than twice its refractory period (the calibration's) come
+from a pixel firing as fast as it can: the change it met during each refractory period is
+lost, so the events of a window that holds them measure only part of its change. Those
+"crowded" events are counted again in a second table of the same kind (``crowded``).
+
 Timestamps stay int64 microseconds throughout.
 """
 
@@ -28,6 +33,8 @@ from evcap.recon.optics import SensorOptics
 from evcap.session import Session
 
 MIN_EVENTS = 500  # fewer than this say nothing of a scene: refused before minutes of fitting
+# an event this many refractory periods or less after its pixel's previous one is crowded
+CROWDED_PERIODS = 2.0
 
 
 @dataclass
@@ -40,6 +47,7 @@ class EventWindows:
     rows: torch.Tensor  # [2 P + 1] int64: each (pixel, polarity)'s first key
     threshold_on: torch.Tensor  # [P]
     threshold_off: torch.Tensor
+    crowded: EventWindows | None = None  # the crowded events alone (None: none counted)
 
     @classmethod
     def from_session(
@@ -51,9 +59,11 @@ class EventWindows:
         interval_us: int,
         max_frames: int,
         device: torch.device | str = "cpu",
+        crowded_us: float = 0.0,
     ) -> EventWindows:
         """Frames every ``interval_us`` (or coarser, to stay within ``max_frames``) over
-        [t_start, t_end], with the events between them."""
+        [t_start, t_end], with the events between them; with ``crowded_us`` > 0, the events
+        within that of their pixel's previous one counted again in ``crowded``."""
         if t_end <= t_start:
             raise InputError(f"{session.path}: no time span with both events and poses")
         span = t_end - t_start
@@ -72,15 +82,26 @@ class EventWindows:
                 f"a reconstruction needs at least {MIN_EVENTS:,} (record the camera moving "
                 "around the scene for a few seconds)"
             )
-        parts = []
+        parts, crowded_parts = [], []
+        last = np.full(w * h, np.iinfo(np.int64).min // 2, np.int64)  # each pixel's last event
         for ev in _blocks(session, i0, i1):
-            codes = (ev.y.astype(np.int64) * w + ev.x) * 2 + (ev.p > 0)
-            slots = np.searchsorted(times, ev.t, side="right") - 1
-            parts.append(np.unique(codes * len(times) + slots, return_counts=True))
-        keys, counts = _merge(parts)
-        return cls.from_keys(
-            w, h, times, keys, counts, optics.threshold_on, optics.threshold_off, device
-        )
+            pixels = ev.y.astype(np.int64) * w + ev.x
+            keys = (pixels * 2 + (ev.p > 0)) * len(times)
+            keys += np.searchsorted(times, ev.t, side="right") - 1
+            parts.append(np.unique(keys, return_counts=True))
+            if crowded_us > 0:
+                near = _crowded(ev.t.astype(np.int64), pixels, last, float(crowded_us))
+                crowded_parts.append(np.unique(keys[near], return_counts=True))
+
+        def table(parts):
+            keys, counts = _merge(parts)
+            thresholds = optics.threshold_on, optics.threshold_off
+            return cls.from_keys(w, h, times, keys, counts, *thresholds, device)
+
+        windows = table(parts)
+        if crowded_parts:
+            windows.crowded = table(crowded_parts)
+        return windows
 
     @classmethod
     def from_codes(
@@ -150,7 +171,8 @@ class EventWindows:
 
     def nbytes(self) -> int:
         """The memory the table takes on its device."""
-        return sum(t.element_size() * t.numel() for t in (self.keys, self.before, self.rows))
+        own = sum(t.element_size() * t.numel() for t in (self.keys, self.before, self.rows))
+        return own + (self.crowded.nbytes() if self.crowded is not None else 0)
 
     def before_frames(self, frames: Sequence[int]) -> torch.Tensor:
         """[K, 2 P] the events of each pixel and polarity (column pixel * 2 + ON) before each
@@ -216,6 +238,18 @@ def _before_rows(keys, before, rows, frames, n_frames, out):
                 else:
                     hi = mid
             out[k, code] = before[lo]
+
+
+@numba.njit(cache=True)
+def _crowded(t, pixels, last, within):
+    """Whether each event (in time order) comes within ``within`` us of its pixel's previous
+    one; ``last`` [P] (each pixel's last event time) is read and updated."""
+    out = np.empty(len(t), np.bool_)
+    for k in range(len(t)):
+        p = pixels[k]
+        out[k] = t[k] - last[p] <= within
+        last[p] = t[k]
+    return out
 
 
 def _merge(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:

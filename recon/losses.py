@@ -46,6 +46,7 @@ def event_loss(
     mask: torch.Tensor,
     zero_events: ZeroEvents = "target",
     silent_weight: float | None = None,
+    crowded: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Mean L1 between the rendered log change and C_on ON - C_off OFF, over ``mask``.
 
@@ -56,8 +57,17 @@ def event_loss(
 
     With ``zero_events="bound"``, a pixel without events is not told "no change" but only
     -C_off < change < C_on (a hinge): what a silent pixel really says.
+
+    A pixel with ``crowded`` events (counts; event_windows.py) lost part of its change to
+    its refractory period: its measured change is only a lower bound on the change's size,
+    in its direction (a hinge again).
     """
     err = (predicted - measured).abs()
+    if crowded is not None:
+        short = torch.where(
+            measured > 0, F.relu(measured - predicted), F.relu(predicted - measured)
+        )
+        err = torch.where((crowded > 0) & (measured != 0), short, err)
     match zero_events:
         case "target":
             pass

@@ -42,6 +42,7 @@ class SensorOptics:
     # ON events, and shot noise, half of each polarity)
     noise_on_hz: float = 0.0
     noise_off_hz: float = 0.0
+    refractory_us: float = 0.0  # the calibration's refractory period
 
     @classmethod
     def from_session(cls, session: Session) -> SensorOptics:
@@ -64,6 +65,7 @@ class SensorOptics:
             calibration.hot(),
             calibration.background_activity_hz + shot,
             shot,
+            calibration.refractory_period_us,
         )
 
     def undistorted(self) -> np.ndarray:

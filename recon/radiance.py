@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from evcap.errors import InputError
 from evcap.recon.config import Backend, RadianceConfig
 from evcap.recon.densify import Densifier
-from evcap.recon.event_windows import EventWindows
+from evcap.recon.event_windows import CROWDED_PERIODS, EventWindows
 from evcap.recon.gaussians import Background, Gaussians, make_optimizer, means_lr
 from evcap.recon.losses import (
     anchor_loss,
@@ -70,6 +70,12 @@ class TrainingData:
 
 def load_training_data(session: Session, config: RadianceConfig, device: str) -> TrainingData:
     optics = SensorOptics.from_session(session)
+    if config.refractory_bound and optics.refractory_us <= 0:
+        raise InputError(
+            f"{session.path}: the refractory bound needs the sensor's refractory period, and "
+            "the calibration has none: measure it with `evcap calibrate`, or leave "
+            "--refractory-bound out"
+        )
     track = Poses.read(session)
     span = session.time_range()
     if span is None:
@@ -84,6 +90,7 @@ def load_training_data(session: Session, config: RadianceConfig, device: str) ->
         round(config.frame_interval_ms * 1000),
         config.max_frames,
         device,
+        CROWDED_PERIODS * optics.refractory_us if config.refractory_bound else 0.0,
     )
     poses = track.at(windows.frame_times)
     volume = scene_volume(poses, optics.K, optics.width, optics.height)
@@ -407,6 +414,7 @@ def windows_event_loss(
     w = data.windows
     with timer("events"):
         before = w.before_frames(frames)
+        crowded = w.crowded.before_frames(frames) if w.crowded is not None else None
     pairs = [
         (i, j)
         for i in range(len(frames))
@@ -431,8 +439,9 @@ def windows_event_loss(
             data.mask,
             config.zero_events,
             config.silent_weight,
+            crowded,
         )
-    return event_loss_torch(data, config, before, pairs, noise, seen)
+    return event_loss_torch(data, config, before, pairs, noise, seen, crowded)
 
 
 def expected_noise(
@@ -456,6 +465,7 @@ def event_loss_torch(
     pairs: list[tuple[int, int]],
     noise: np.ndarray,
     seen: list[torch.Tensor],
+    crowded: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """windows_event_loss in PyTorch operations: losses.event_loss window by window."""
     w = data.windows
@@ -464,6 +474,9 @@ def event_loss_torch(
     for (i, j), (mu_on, mu_off) in zip(pairs, noise, strict=True):
         target, counts = w.change(*w.between(before[i], before[j]))
         target = target - (w.threshold_on * float(mu_on) - w.threshold_off * float(mu_off))
+        near = None
+        if crowded is not None:
+            near = sum(w.crowded.between(crowded[i], crowded[j]))
         event.append(
             event_loss(
                 logs[j] - logs[i],
@@ -474,6 +487,7 @@ def event_loss_torch(
                 data.mask,
                 config.zero_events,
                 config.silent_weight,
+                near,
             )
         )
     return torch.stack(event).mean()

@@ -11,8 +11,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from evcap.events import Events
 from evcap.recon import config as cfg
-from evcap.recon import losses
+from evcap.recon import event_windows, losses
 from evcap.recon._event_loss_cpu import event_loss_cpu
 from evcap.recon._sample_cpu import Sampler
 from evcap.recon._surface_terms_cpu import surface_terms_cpu
@@ -198,13 +199,18 @@ def test_event_counts_from_the_table_match_a_plain_count(seed):
 @pytest.mark.parametrize("zero_events", ["target", "bound"])
 @pytest.mark.parametrize("silent_weight", [None, 0.3])
 @pytest.mark.parametrize("noisy", [False, True])
-def test_event_loss_matches_the_window_by_window_one(zero_events, silent_weight, noisy):
+@pytest.mark.parametrize("crowded", [False, True])
+def test_event_loss_matches_the_window_by_window_one(zero_events, silent_weight, noisy, crowded):
     width, height, times, t, codes, starts = random_events(3)
     g = torch.Generator().manual_seed(4)
     n = width * height
     on = 0.15 + 0.1 * torch.rand(n, generator=g)
     off = 0.15 + 0.1 * torch.rand(n, generator=g)
     windows = EventWindows.from_codes(width, height, times, codes, starts, on, off)
+    if crowded:  # a third of the events crowded (their counts a table of their own)
+        near = np.random.default_rng(6).random(len(codes)) < 0.3
+        kept = np.searchsorted(np.flatnonzero(near), starts)
+        windows.crowded = EventWindows.from_codes(width, height, times, codes[near], kept, on, off)
     channel = torch.randint(0, 4, (n,), generator=g)
     data = SimpleNamespace(
         windows=windows,
@@ -216,6 +222,7 @@ def test_event_loss_matches_the_window_by_window_one(zero_events, silent_weight,
     )
     frames = np.array([2, 9, 9, 20])  # two views at one time: no window between them
     before = windows.before_frames(frames)
+    near = windows.crowded.before_frames(frames) if crowded else None
     pairs = [(0, 1), (0, 2), (0, 3), (1, 3), (2, 3)]
     # radiance about 0.5, some black and some negative (interpolation's undershoot)
     views = [0.5 + 0.3 * torch.randn(n, 3, generator=g) for _ in frames]
@@ -225,7 +232,7 @@ def test_event_loss_matches_the_window_by_window_one(zero_events, silent_weight,
     fast = [v.clone().requires_grad_(True) for v in views]
     # expected noise events per window (ON, OFF), as the calibration's rates give them
     noise = np.random.default_rng(5).uniform(0, 0.8, (len(pairs), 2)) * noisy
-    expected = event_loss_torch(data, config, before, pairs, noise, ref)
+    expected = event_loss_torch(data, config, before, pairs, noise, ref, near)
     got = event_loss_cpu(
         fast,
         data.channel_weights,
@@ -238,6 +245,7 @@ def test_event_loss_matches_the_window_by_window_one(zero_events, silent_weight,
         data.mask,
         zero_events,
         silent_weight,
+        near,
     )
     torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-6)
     (2.0 * expected).backward()
@@ -274,3 +282,38 @@ def test_expected_noise_follows_the_rates_and_the_window_lengths(tmp_path):
     expected = [[0.01, 0.0025], [0.21, 0.0525], [0.2, 0.05]]
     np.testing.assert_allclose(expected_noise(data, asked, frames, pairs), expected)
     assert not expected_noise(data, cfg.preset("tiny"), frames, pairs).any()
+
+
+def test_crowded_events_are_those_within_twice_the_refractory_period(tmp_path, monkeypatch):
+    """An event within 2 x the calibration's refractory period of its pixel's previous one
+    (of either polarity) is counted again as crowded; a window with one bounds the change's
+    size from below, in its direction, and no longer asks for it exactly."""
+    path = tmp_path / "s.h5"
+    sensor = SensorInfo("simulated", 8, 6)
+    # pixel (1, 0): events 300 us apart (crowded after the first), then one 5 ms later;
+    # pixel (2, 3): 700 and 1,100 us apart (the first crowded, the second not)
+    x = [1, 2, 1, 1, 2, 2, 1]
+    y = [0, 3, 0, 0, 3, 3, 0]
+    t = [1000, 1500, 1300, 1600, 2200, 3300, 6600]
+    p = [1, 0, 1, 1, 0, 0, 1]
+    order = np.argsort(t, kind="stable")
+    events = Events(*(np.asarray(a)[order] for a in (x, y, t, p)), width=8, height=6)
+    with SessionWriter(path, sensor) as w:
+        w.append_events(events)
+    monkeypatch.setattr(event_windows, "MIN_EVENTS", 0)
+    c = np.full((6, 8), 0.2)
+    optics = SimpleNamespace(threshold_on=c, threshold_off=c)
+    with Session.open(path) as s:
+        windows = EventWindows.from_session(s, optics, 0, 10_000, 10_000, 10, crowded_us=2 * 500.0)
+    on, off = windows.crowded.counts(0, 1)
+    assert on[1] == 2 and off[3 * 8 + 2] == 1 and on.sum() + off.sum() == 3
+    measured = torch.tensor([0.6, -0.4, 0.6])
+    predicted = torch.tensor([0.9, -0.1, 0.9])
+    counts = torch.ones(3)
+    flag = torch.tensor([1.0, 1.0, 0.0])
+    c3 = torch.full((3,), 0.2)
+    loss = losses.event_loss(
+        predicted, measured, counts, c3, c3, torch.ones(3, dtype=bool), crowded=flag
+    )
+    # above the first bound: nothing; short of the second by 0.3; the third exact L1 0.3
+    torch.testing.assert_close(loss, torch.tensor(0.2))

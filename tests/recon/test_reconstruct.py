@@ -1,10 +1,12 @@
 """`evcap reconstruct` end to end on a tiny simulated scene (color and MONO)."""
 
+import dataclasses
 import json
 import shutil
 import subprocess
 import sys
 import tomllib
+from pathlib import Path
 
 import cv2
 import h5py
@@ -17,7 +19,7 @@ from evcap.recon import config as cfg
 from evcap.recon.export import read_ply_header
 from evcap.recon.radiance import RadianceField, load_training_data, new_field, train_radiance
 from evcap.recon.reconstruct import reconstruct
-from evcap.records import GroundTruth
+from evcap.records import Calibration, GroundTruth
 from evcap.session import Session, SessionWriter
 from evcap.sim.scene import load_scene
 from evcap.sim.simulate import simulate
@@ -342,15 +344,27 @@ def test_too_few_events_are_refused_at_once(color_session, tmp_path, n):
     assert not (tmp_path / "o").exists()
 
 
+def with_refractory(session: Path, us: float, folder: Path) -> Path:
+    """A copy of ``session`` whose calibration holds a refractory period of ``us``."""
+    copy = Path(shutil.copy(session, folder / "refractory.h5"))
+    with Session.open(copy) as s:
+        calibration = Calibration.read(s)
+    dataclasses.replace(calibration, refractory_period_us=us).write(copy)
+    return copy
+
+
 def test_cli_writes_a_reconstruction(color_session, tmp_path):
     out = tmp_path / "out"
-    args = ["reconstruct", str(color_session), "-o", str(out), "--preset", "tiny"]
+    session = with_refractory(color_session, 500.0, tmp_path)
+    args = ["reconstruct", str(session), "-o", str(out), "--preset", "tiny"]
     args += ["--iterations", "5", "--resolution", "1", "--seed", "2"]
     args += ["--material-iterations", "3", "--without", "edge-tv", "--without", "anchor"]
+    args += ["--refractory-bound"]
     r = subprocess.run([sys.executable, "-m", "evcap", *args], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["iterations"] == 5 and metrics["seed"] == 2
+    assert tomllib.loads((out / "config.toml").read_text())["radiance"]["refractory_bound"]
     assert not metrics["effects"]["tv"] and not metrics["effects"]["anchor"]
     assert metrics["effects"]["distill"]
     assert "render_psnr_cc" in r.stdout and "base_color_psnr_cc" in r.stdout
@@ -436,6 +450,20 @@ def test_coarse_to_fine_renders_the_first_part_of_the_run_small(color_session, m
         cfg.preset("tiny", coarse_until=2.0)
     with pytest.raises(InputError, match="coarse_resolution"):
         cfg.preset("tiny", coarse_resolution=0.0)
+
+
+def test_the_refractory_bound_counts_the_crowded_events(color_session, tmp_path):
+    """With the calibration's refractory period and the bound asked for, the events within
+    twice the period of their pixel's previous one are counted again, apart; not otherwise.
+    Asked for without the period, a clear error."""
+    bound = cfg.preset("tiny", refractory_bound=True)
+    with Session.open(color_session) as s, pytest.raises(InputError, match="evcap calibrate"):
+        load_training_data(s, bound, "cpu")
+    with Session.open(with_refractory(color_session, 2000.0, tmp_path)) as s:
+        crowded = load_training_data(s, bound, "cpu").windows.crowded
+        plain = load_training_data(s, cfg.preset("tiny"), "cpu").windows
+    assert plain.crowded is None and crowded is not None
+    assert 0 < crowded.events < plain.events
 
 
 def test_gaussians_start_on_the_poses_points_when_asked(color_session, tmp_path):
