@@ -59,11 +59,11 @@ class EventWindows:
         interval_us: int,
         max_frames: int,
         device: torch.device | str = "cpu",
-        crowded_us: float = 0.0,
+        refractory_us: float = 0.0,
     ) -> EventWindows:
         """Frames every ``interval_us`` (or coarser, to stay within ``max_frames``) over
-        [t_start, t_end], with the events between them; with ``crowded_us`` > 0, the events
-        within that of their pixel's previous one counted again in ``crowded``."""
+        [t_start, t_end], with the events between them; with a ``refractory_us`` > 0, the
+        crowded events counted again in ``crowded``."""
         if t_end <= t_start:
             raise InputError(f"{session.path}: no time span with both events and poses")
         span = t_end - t_start
@@ -89,8 +89,9 @@ class EventWindows:
             keys = (pixels * 2 + (ev.p > 0)) * len(times)
             keys += np.searchsorted(times, ev.t, side="right") - 1
             parts.append(np.unique(keys, return_counts=True))
-            if crowded_us > 0:
-                near = _crowded(ev.t.astype(np.int64), pixels, last, float(crowded_us))
+            if refractory_us > 0:
+                within = CROWDED_PERIODS * float(refractory_us)
+                near = _crowded(ev.t.astype(np.int64), pixels, last, within)
                 crowded_parts.append(np.unique(keys[near], return_counts=True))
 
         def table(parts):

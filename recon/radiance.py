@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from evcap.errors import InputError
 from evcap.recon.config import Backend, RadianceConfig
 from evcap.recon.densify import Densifier
-from evcap.recon.event_windows import CROWDED_PERIODS, EventWindows
+from evcap.recon.event_windows import EventWindows
 from evcap.recon.gaussians import Background, Gaussians, make_optimizer, means_lr
 from evcap.recon.losses import (
     anchor_loss,
@@ -90,7 +90,7 @@ def load_training_data(session: Session, config: RadianceConfig, device: str) ->
         round(config.frame_interval_ms * 1000),
         config.max_frames,
         device,
-        CROWDED_PERIODS * optics.refractory_us if config.refractory_bound else 0.0,
+        optics.refractory_us if config.refractory_bound else 0.0,
     )
     poses = track.at(windows.frame_times)
     volume = scene_volume(poses, optics.K, optics.width, optics.height)

@@ -304,7 +304,7 @@ def test_crowded_events_are_those_within_twice_the_refractory_period(tmp_path, m
     c = np.full((6, 8), 0.2)
     optics = SimpleNamespace(threshold_on=c, threshold_off=c)
     with Session.open(path) as s:
-        windows = EventWindows.from_session(s, optics, 0, 10_000, 10_000, 10, crowded_us=2 * 500.0)
+        windows = EventWindows.from_session(s, optics, 0, 10_000, 10_000, 10, refractory_us=500.0)
     on, off = windows.crowded.counts(0, 1)
     assert on[1] == 2 and off[3 * 8 + 2] == 1 and on.sum() + off.sum() == 3
     measured = torch.tensor([0.6, -0.4, 0.6])
