@@ -1,5 +1,5 @@
 """The commands of the steps' floor, one step each: simulate, calibrate, poses, reconstruct,
-report."""
+report, export, view."""
 
 from __future__ import annotations
 
@@ -462,5 +462,97 @@ REPORT = Command(
     run=_report,
 )
 
+
+def _mesh_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--resolution",
+        type=float,
+        metavar="VOXEL",
+        help="the voxel size of the depth fusion, in the scene's units (default: the "
+        "surface's extent / 192)",
+    )
+    p.add_argument("--views", type=int, default=60, help="views along the camera path fused")
+    p.add_argument("--texture-size", type=int, default=1024, help="the textures' side, pixels")
+    p.add_argument("--session", help="the session (default: the one OUT was made from)")
+
+
+def _mesh_config(args: argparse.Namespace):
+    from evcap.recon.mesh_export import MeshConfig
+
+    for name in ("views", "texture_size"):
+        if getattr(args, name) < 1:
+            raise InputError(f"--{name.replace('_', '-')} must be at least 1")
+    if args.resolution is not None and not args.resolution > 0:
+        raise InputError("--resolution must be a positive voxel size (scene units)")
+    return MeshConfig(voxel=args.resolution, views=args.views, texture_size=args.texture_size)
+
+
+def _export_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("output", metavar="OUT", help="a folder made by `evcap reconstruct`")
+    p.add_argument(
+        "-o",
+        "--asset",
+        required=True,
+        metavar="ASSET",
+        help="the file to write: .glb (glTF 2.0), .obj (with .mtl and textures) or .ply",
+    )
+    _mesh_arguments(p)
+
+
+def _export(args: argparse.Namespace) -> int:
+    from evcap.recon.mesh_export import FORMATS, export_mesh
+
+    if not args.asset.lower().endswith(FORMATS):
+        raise InputError(f"{args.asset}: write .glb, .obj or .ply")
+    asset = export_mesh(args.output, args.session, _mesh_config(args), print)
+    written = asset.write(args.asset)
+    print(asset.summary())
+    print("wrote " + ", ".join(str(p) for p in written))
+    return 0
+
+
+EXPORT = Command(
+    "export",
+    help="a textured mesh of a reconstruction (.glb, .obj, .ply)",
+    description="Fuse the reconstruction's depth along the camera path into a mesh (TSDF and "
+    "marching cubes), drop its floaters and bake stage II's base color and roughness into "
+    "textures: glTF's metallic-roughness material (metallic 0) is the method's BRDF. "
+    "Positions in the session's units; the .glb is y up as glTF asks, .obj and .ply keep the "
+    "world's z up. docs/reconstruction.md says more.",
+    arguments=_export_arguments,
+    run=_export,
+)
+
+
+def _view_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("output", metavar="OUT", help="a folder made by `evcap reconstruct`")
+    p.add_argument("--no-open", action="store_true", help="write the page, open no browser")
+    _mesh_arguments(p)
+
+
+def _view(args: argparse.Namespace) -> int:
+    from evcap.report.viewer import write_folder_viewer
+
+    page = write_folder_viewer(args.output, args.session, _mesh_config(args))
+    print(f"{page}: open it in a browser (self-contained, no network needed)")
+    if not args.no_open:
+        import webbrowser
+
+        if not webbrowser.open(page.resolve().as_uri()):
+            print("no browser found here: open the page by hand")
+    return 0
+
+
+VIEW = Command(
+    "view",
+    help="the reconstruction in 3D in a browser: mesh, Gaussians, camera path",
+    description="Write OUT/viewer.html (one self-contained page, WebGL) with the textured "
+    "mesh (OUT/mesh.glb, exported first when it is not there; its options as `evcap "
+    "export`'s), the Gaussians' centres and the camera path, and open it in the browser. "
+    "`evcap report` links it.",
+    arguments=_view_arguments,
+    run=_view,
+)
+
 # in the order `evcap --help` lists them
-COMMANDS = (SIMULATE, CALIBRATE, POSES, RECONSTRUCT, REPORT)
+COMMANDS = (SIMULATE, CALIBRATE, POSES, RECONSTRUCT, REPORT, EXPORT, VIEW)

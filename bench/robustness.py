@@ -12,7 +12,8 @@ A row is a sensor (the events are simulated once per scene and sensor, into
 results/sessions/), what the reconstruction knows of it ("truth": the simulated sensor's
 calibration, as `evcap calibrate` measures a real one; "nominal": uniform thresholds and
 nothing else, what a user without a calibration has) and the pose noise. Each run is kept in
-results/robustness/ and read back when asked again with the same settings (--rerun: run again).
+results/robustness/ (its figures as JSON, its OUT folder beside them) and read back when asked
+again with the same settings (--rerun: run again).
 "mic" is NeRF-Synthetic's, from ../shared/data (its held-out views the release's train views).
 """
 
@@ -241,12 +242,14 @@ def run_row(scene: str, name: str, args: argparse.Namespace) -> dict:
         print(f"{scene}, {name}: read from {path}", flush=True)
         return json.loads(path.read_text())
     session = simulated(scene, row.sensor, args.scale)
+    out_folder = path.with_suffix("")  # the run's OUT: its renders, beside the truth's
+    shutil.rmtree(out_folder, ignore_errors=True)
     with tempfile.TemporaryDirectory() as tmp:
         used = prepared(session, row, Path(tmp), args.seed)
         started = time.perf_counter()
         result = reconstruct(
             used,
-            Path(tmp) / "out",
+            out_folder,
             preset=args.preset,
             seed=args.seed,
             stage=args.stage,

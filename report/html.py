@@ -127,7 +127,7 @@ def write_report(out: str | Path, session: str | Path | None = None) -> Path:
     bodies["relit"] = _relit_section(folder)
     bodies["metrics"] = result_note or _metrics_section(result)
     bodies["progress"] = _progress_section(result or ReconstructionResult())
-    write_text_atomic(folder.report, _page(folder.root, bodies))
+    write_text_atomic(folder.report, _page(folder.root, bodies, _viewer_link(folder)))
     return folder.report
 
 
@@ -196,7 +196,17 @@ def _color_bar(lo: float, hi: float, unit: str = "") -> str:
     )
 
 
-def _page(out: Path, bodies: dict[str, str]) -> str:
+def _viewer_link(folder: ReconstructionFolder) -> str:
+    """A line linking the 3D viewer beside the page, or saying how to make it."""
+    if folder.viewer.exists():
+        return (
+            f'<p>In 3D (mesh, Gaussians, camera path): <a href="{folder.viewer.name}">'
+            f"{folder.viewer.name}</a>.</p>"
+        )
+    return "<p>In 3D: <code>evcap view OUT</code> writes the mesh and a viewer beside it.</p>"
+
+
+def _page(out: Path, bodies: dict[str, str], viewer: str = "") -> str:
     nav = " ".join(f'<a href="#{key}">{escape(title)}</a>' for key, title in SECTIONS)
     sections = "".join(
         f'<section id="{key}"><h2>{k}. {escape(title)}</h2>{bodies[key]}</section>'
@@ -208,7 +218,7 @@ def _page(out: Path, bodies: dict[str, str]) -> str:
         f'<html lang="en"><head><meta charset="utf-8"><title>evcap report: '
         f"{escape(out.name)}</title><style>{STYLE}</style></head><body>"
         f"<h1>evcap report: {escape(str(out))}</h1>"
-        f"<p>Written {escape(written)} by <code>evcap report</code>.</p>"
+        f"<p>Written {escape(written)} by <code>evcap report</code>.</p>{viewer}"
         f"<nav>{nav}</nav>{sections}</body></html>\n"
     )
 

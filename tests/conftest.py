@@ -17,6 +17,43 @@ SHARED = Path(os.environ.get("EVCAP_SHARED", ROOT.parent / "shared"))
 SAMPLE_AEDAT4 = SHARED / "data" / "davis346-sample" / "davis346_test_data.aedat4"
 
 
+CHROMIUM = Path("/usr/bin/chromium")  # Debian's (scripts/setup.sh installs it where it can)
+
+
+@pytest.fixture
+def screenshot(tmp_path):
+    """shoot(page, width, height) -> the page as headless Chromium draws it (BGR), its scripts
+    and WebGL (software) run; skips where no browser is installed."""
+    import subprocess
+
+    import cv2
+
+    if not CHROMIUM.exists():
+        pytest.skip(f"no browser at {CHROMIUM} (apt-get install chromium) to load the page")
+
+    def shoot(page: Path, width: int, height: int) -> np.ndarray:
+        shot = tmp_path / f"{page.stem}.png"
+        flags = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run"]
+        flags += ["--disable-background-networking", "--disable-component-update"]
+        flags += ["--disable-sync", f"--user-data-dir={tmp_path / 'profile'}"]
+        # WebGL on the CPU (SwiftShader); the page's scripts and image loads given time
+        flags += ["--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+        flags += ["--virtual-time-budget=10000"]
+        flags += [f"--screenshot={shot}", f"--window-size={width},{height}"]
+        run = subprocess.run(
+            [str(CHROMIUM), *flags, page.resolve().as_uri()],
+            capture_output=True,
+            text=True,
+            timeout=180,
+            check=False,
+        )
+        image = cv2.imread(str(shot))
+        assert image is not None, f"no screenshot: {run.stderr[-2000:]}"
+        return image
+
+    return shoot
+
+
 @pytest.fixture(scope="session")
 def davis346_calibrations() -> Path:
     """Real DAVIS346 calibrations (ROS camera_info and Kalibr files)."""

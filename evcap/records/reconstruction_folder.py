@@ -8,6 +8,8 @@
     checkpoint/            radiance.pt, material.pt; STAGE-state.pt while a stage is unfinished
     renders/               stage I's views; material/: stage II's; relit/: under a new light
     report.html            `evcap report`'s page
+    mesh.glb               `evcap view`'s mesh (`evcap export`'s, when asked to write it here)
+    viewer.html            `evcap view`'s page
 
 reconstruct, resume, the exports, the report and the pipeline all go through it.
 """
@@ -38,6 +40,8 @@ PLY = "gaussians.ply"
 POSES = "poses.h5"
 ENVIRONMENT = "environment.png"
 REPORT = "report.html"
+MESH = "mesh.glb"
+VIEWER = "viewer.html"
 CHECKPOINTS = "checkpoint"
 RENDERS = "renders"
 RENDER_FOLDERS: dict[Renders, tuple[str, ...]] = {
@@ -84,6 +88,14 @@ class ReconstructionFolder:
     @property
     def report(self) -> Path:
         return self.root / REPORT
+
+    @property
+    def mesh(self) -> Path:
+        return self.root / MESH
+
+    @property
+    def viewer(self) -> Path:
+        return self.root / VIEWER
 
     def checkpoint(self, stage: Training) -> Path:
         return self.root / CHECKPOINTS / f"{stage}.pt"

@@ -1,0 +1,117 @@
+"""Depth maps fused into a truncated signed distance volume, and the surface through its zero
+level (marching cubes, scikit-image), cleaned of floaters: the mesh a reconstruction's depth
+describes.
+
+Each voxel holds the weighted mean of its signed distance to the surface along the rays of the
+views that see it (positive in front, clipped to the truncation distance, in units of it). A
+ray that meets nothing (depth 0: the pixel sees through to the background) says its voxels
+are empty: a floater that some views show and others see through is carved away.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from evcap.errors import InputError
+
+MAX_VOXELS = 320**3  # float32 value and weight: 260 MB; beyond it, ask for a coarser grid
+
+
+@dataclass(frozen=True)
+class Grid:
+    """The voxels: voxel (i, j, k)'s centre lies at origin + voxel * (i, j, k)."""
+
+    origin: np.ndarray  # [3] world
+    voxel: float
+    shape: tuple[int, int, int]
+
+    @classmethod
+    def around(cls, lo: np.ndarray, hi: np.ndarray, voxel: float) -> Grid:
+        """The grid covering the box lo..hi; InputError when it would be too large."""
+        shape = tuple(int(math.ceil(x)) + 1 for x in (np.asarray(hi) - lo) / voxel)
+        if math.prod(shape) > MAX_VOXELS:
+            raise InputError(
+                f"a voxel of {voxel:.4g} makes {shape[0]} x {shape[1]} x {shape[2]} voxels "
+                f"over the object ({math.prod(shape) / 1e6:.0f} M, at most "
+                f"{MAX_VOXELS / 1e6:.0f} M): give a larger --resolution"
+            )
+        return cls(np.asarray(lo, np.float64), float(voxel), shape)  # type: ignore[arg-type]
+
+    def centres(self) -> np.ndarray:
+        """[X * Y * Z, 3] float32 world positions of the voxels' centres, in C order."""
+        axes = [self.origin[a] + self.voxel * np.arange(n) for a, n in enumerate(self.shape)]
+        mesh = np.meshgrid(*axes, indexing="ij")
+        return np.stack([m.ravel() for m in mesh], 1).astype(np.float32)
+
+
+class Tsdf:
+    """The volume being fused."""
+
+    def __init__(self, grid: Grid, truncation_voxels: float = 4.0) -> None:
+        self.grid = grid
+        self.truncation = truncation_voxels * grid.voxel
+        self.value = np.ones(math.prod(grid.shape), np.float32)
+        self.weight = np.zeros(math.prod(grid.shape), np.float32)
+        self._centres = grid.centres()
+
+    def integrate(self, depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -> None:
+        """One pinhole view: ``depth`` [H, W] the camera z of the surface each pixel sees (0:
+        nothing there), ``K`` its intrinsics, ``T_world_cam`` its pose."""
+        H, W = depth.shape
+        R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
+        cam = (self._centres - t.astype(np.float32)) @ R.astype(np.float32)  # world -> camera
+        z = cam[:, 2]
+        front = z > 1e-6
+        zs = np.where(front, z, 1.0)
+        u = np.floor(K[0, 0] * cam[:, 0] / zs + K[0, 2] + 0.5).astype(np.int64)
+        v = np.floor(K[1, 1] * cam[:, 1] / zs + K[1, 2] + 0.5).astype(np.int64)
+        seen = front & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        idx = np.flatnonzero(seen)
+        d = depth[v[idx], u[idx]]
+        sdf = d - z[idx]
+        surface = d > 0
+        # behind the surface by more than the truncation: hidden, nothing known
+        keep = ~surface | (sdf > -self.truncation)
+        idx, obs = idx[keep], np.where(surface, np.clip(sdf / self.truncation, -1, 1), 1.0)[keep]
+        w = self.weight[idx]
+        self.value[idx] = (self.value[idx] * w + obs) / (w + 1)
+        self.weight[idx] = w + 1
+
+    def mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """(vertices [V, 3] world, faces [F, 3]) of the zero level, within the voxels some view
+        observed; triangles wound so that their normals face the empty side."""
+        from scipy.ndimage import binary_erosion
+        from skimage.measure import marching_cubes
+
+        value = self.value.reshape(self.grid.shape)
+        observed = self.weight.reshape(self.grid.shape) > 0
+        # a cube is meshed only where all its corners were observed: the unobserved voxels'
+        # initial value would make a surface of its own at the edge of what was seen
+        mask = binary_erosion(observed, np.ones((3, 3, 3), bool), border_value=0)
+        if not (value[mask] < 0).any() or not (value[mask] > 0).any():
+            return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+        verts, faces, _, _ = marching_cubes(
+            value, 0.0, spacing=(self.grid.voxel,) * 3, mask=mask, gradient_direction="descent"
+        )
+        return verts + self.grid.origin, faces.astype(np.int64)
+
+
+def largest_parts(
+    vertices: np.ndarray, faces: np.ndarray, keep_share: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh without its small disconnected pieces (floaters): the connected parts with at
+    least ``keep_share`` of the largest part's area."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(vertices, faces, process=True)
+    parts = mesh.split(only_watertight=False)
+    if len(parts) <= 1:
+        return np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    areas = np.array([p.area for p in parts])
+    kept = trimesh.util.concatenate(
+        [p for p, a in zip(parts, areas, strict=True) if a >= keep_share * areas.max()]
+    )
+    return np.asarray(kept.vertices), np.asarray(kept.faces)
