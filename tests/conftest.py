@@ -277,3 +277,48 @@ def board_session(tiny_scene, tmp_path_factory):
     path = tmp_path_factory.mktemp("calib") / "board.h5"
     simulate(load_scene(scene), path)
     return path
+
+
+# a reconstruction folder whose fields are the truth's (tests/recon/test_mesh_export.py, the
+# mesh bench's tiny run): Gaussians sampled over tiny_scene's sphere (radius 0.6 at the origin)
+# as stage I, with a base color and roughness known at every point as stage II
+def surface_base_color(points: np.ndarray) -> np.ndarray:
+    """A smooth color over the sphere."""
+    d = points / 0.6
+    return np.stack([0.5 + 0.4 * d[..., 0], 0.5 + 0.4 * d[..., 2], 0.3 + 0.2 * d[..., 1]], -1)
+
+
+def surface_roughness(points: np.ndarray) -> np.ndarray:
+    return 0.5 + 0.3 * points[..., 2] / 0.6
+
+
+@pytest.fixture(scope="session")
+def surface_reconstruction(tiny_scene, tmp_path_factory) -> Path:
+    import torch
+
+    from evcap.recon.export import save_checkpoint, save_material_checkpoint
+    from evcap.recon.gaussians import Background, Gaussians
+    from evcap.recon.material import MaterialField
+    from evcap.recon.radiance import RadianceField
+    from evcap.recon.shading import MIN_ROUGHNESS
+    from evcap.records.reconstruction_folder import ReconstructionFolder
+    from evcap.sim.meshes import build_mesh, sample_surface
+    from evcap.sim.scene import load_scene
+    from evcap.sim.simulate import simulate
+
+    folder = tmp_path_factory.mktemp("surface")
+    scene = load_scene(tiny_scene())
+    simulate(scene, folder / "s.h5")
+    points, normals, spacing = sample_surface(build_mesh(scene)[0], 6000)
+    g = Gaussians.on_surface(points, normals, spacing, sh_degree=0)
+    out = ReconstructionFolder(folder / "recon")
+    out.checkpoint("radiance").parent.mkdir(parents=True)
+    save_checkpoint(RadianceField(g, Background(8)), {}, out.checkpoint("radiance"))
+    field = MaterialField(g, Background(8), torch.as_tensor(normals).float(), None, False)
+    with torch.no_grad():
+        field.base_logits.copy_(torch.logit(torch.as_tensor(surface_base_color(points)).float()))
+        r = torch.as_tensor(surface_roughness(points)).float()
+        field.roughness_logits.copy_(torch.logit((r - MIN_ROUGHNESS) / (1 - MIN_ROUGHNESS)))
+    save_material_checkpoint(field, out.checkpoint("material"))
+    out.write_config({"reconstruct": {"session": str(folder / "s.h5")}})
+    return out.root

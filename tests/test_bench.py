@@ -30,7 +30,8 @@ def session(scene, tmp_path_factory):
 
 
 # Every bench and the arguments of its tiny run: {scene} a tiny scene, {session} its session,
-# {board} the calibration tests' board recording, {sample} the real DAVIS346 recording. steps
+# {board} the calibration tests' board recording, {sample} the real DAVIS346 recording,
+# {surface} a reconstruction folder of the tiny scene's true surface. steps
 # and paper_table have tests of their own below.
 TINY = {
     "ablation": ["--scenes", "{session}", "--iterations", "5", "--material-iterations", "2"]
@@ -44,6 +45,8 @@ TINY = {
     + ["--variants", "base", "binary"],
     "gpu": ["{session}", "--backends", "cpu", "--iterations", "5", "--material-iterations", "2"],
     "import_throughput": ["--events", "20000", "--warm-events", "2000", "--rounds", "1"],
+    "mesh": ["{surface}", "--views", "8", "--texture-size", "128", "--resolution", "0.03"]
+    + ["--samples", "20000"],
     "poses": ["--scenes", "{board}"],
     "rasterizer": ["--quick", "--repeats", "1", "--scene", "{session}", "--preset", "tiny"]
     + ["--iterations", "5", "--scale", "0.25"],
@@ -73,6 +76,7 @@ def test_bench_runs_at_a_tiny_size(name, request, monkeypatch, tmp_path):
 
     fixtures = {"session": "session", "board": "board_session", "sample": "sample_aedat4"}
     fixtures["scene"] = "scene"
+    fixtures["surface"] = "surface_reconstruction"
     args = " ".join(TINY[name])
     paths = {k: request.getfixturevalue(f) for k, f in fixtures.items() if f"{{{k}}}" in args}
 
