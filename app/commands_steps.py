@@ -473,18 +473,26 @@ def _mesh_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--views", type=int, default=60, help="views along the camera path fused")
     p.add_argument("--texture-size", type=int, default=1024, help="the textures' side, pixels")
+    p.add_argument(
+        "--triangles", type=int, default=40_000, help="the mesh simplified to about this many"
+    )
     p.add_argument("--session", help="the session (default: the one OUT was made from)")
 
 
 def _mesh_config(args: argparse.Namespace):
     from evcap.recon.mesh_export import MeshConfig
 
-    for name in ("views", "texture_size"):
+    for name in ("views", "texture_size", "triangles"):
         if getattr(args, name) < 1:
             raise InputError(f"--{name.replace('_', '-')} must be at least 1")
     if args.resolution is not None and not args.resolution > 0:
         raise InputError("--resolution must be a positive voxel size (scene units)")
-    return MeshConfig(voxel=args.resolution, views=args.views, texture_size=args.texture_size)
+    return MeshConfig(
+        voxel=args.resolution,
+        views=args.views,
+        texture_size=args.texture_size,
+        max_triangles=args.triangles,
+    )
 
 
 def _export_arguments(p: argparse.ArgumentParser) -> None:

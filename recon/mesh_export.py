@@ -26,7 +26,7 @@ import torch
 from evcap.errors import InputError
 from evcap.images import srgb
 from evcap.recon.bake import View, atlas, bake, sample, texels, texture
-from evcap.recon.tsdf import Grid, Tsdf, largest_parts
+from evcap.recon.tsdf import Grid, Tsdf, largest_parts, simplified
 from evcap.records import Poses
 from evcap.records.reconstruction_folder import ReconstructionFolder
 
@@ -46,6 +46,7 @@ class MeshConfig:
     truncation_voxels: float = 4.0
     min_alpha: float = 0.5  # less opaque pixels see the background: empty space
     keep_share: float = 0.05  # parts with less of the largest part's area are floaters
+    max_triangles: int = 40_000  # the mesh simplified to this many (about)
     texture_size: int = 1024
     depth_tolerance_voxels: float = 3.0  # a texel is what a view sees within this
 
@@ -180,6 +181,7 @@ def export_mesh(
             "object recovered? see its report)"
         )
     vertices, faces = largest_parts(vertices, faces, config.keep_share)
+    vertices, faces = simplified(vertices, faces, config.max_triangles)
     say(f"baking {config.texture_size} px textures onto {len(faces):,} triangles")
     a = atlas(vertices, faces, config.texture_size)
     t = texels(a, config.texture_size)

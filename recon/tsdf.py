@@ -1,6 +1,6 @@
 """Depth maps fused into a truncated signed distance volume, and the surface through its zero
-level (marching cubes, scikit-image), cleaned of floaters: the mesh a reconstruction's depth
-describes.
+level (marching cubes, scikit-image), cleaned of floaters and simplified: the mesh a
+reconstruction's depth describes.
 
 Each voxel holds the weighted mean of its signed distance to the surface along the rays of the
 views that see it (positive in front, clipped to the truncation distance, in units of it). A
@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from evcap.errors import InputError
@@ -40,12 +41,6 @@ class Grid:
             )
         return cls(np.asarray(lo, np.float64), float(voxel), shape)  # type: ignore[arg-type]
 
-    def centres(self) -> np.ndarray:
-        """[X * Y * Z, 3] float32 world positions of the voxels' centres, in C order."""
-        axes = [self.origin[a] + self.voxel * np.arange(n) for a, n in enumerate(self.shape)]
-        mesh = np.meshgrid(*axes, indexing="ij")
-        return np.stack([m.ravel() for m in mesh], 1).astype(np.float32)
-
 
 class Tsdf:
     """The volume being fused."""
@@ -55,30 +50,24 @@ class Tsdf:
         self.truncation = truncation_voxels * grid.voxel
         self.value = np.ones(math.prod(grid.shape), np.float32)
         self.weight = np.zeros(math.prod(grid.shape), np.float32)
-        self._centres = grid.centres()
 
     def integrate(self, depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -> None:
         """One pinhole view: ``depth`` [H, W] the camera z of the surface each pixel sees (0:
         nothing there), ``K`` its intrinsics, ``T_world_cam`` its pose."""
-        H, W = depth.shape
         R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
-        cam = (self._centres - t.astype(np.float32)) @ R.astype(np.float32)  # world -> camera
-        z = cam[:, 2]
-        front = z > 1e-6
-        zs = np.where(front, z, 1.0)
-        u = np.floor(K[0, 0] * cam[:, 0] / zs + K[0, 2] + 0.5).astype(np.int64)
-        v = np.floor(K[1, 1] * cam[:, 1] / zs + K[1, 2] + 0.5).astype(np.int64)
-        seen = front & (u >= 0) & (u < W) & (v >= 0) & (v < H)
-        idx = np.flatnonzero(seen)
-        d = depth[v[idx], u[idx]]
-        sdf = d - z[idx]
-        surface = d > 0
-        # behind the surface by more than the truncation: hidden, nothing known
-        keep = ~surface | (sdf > -self.truncation)
-        idx, obs = idx[keep], np.where(surface, np.clip(sdf / self.truncation, -1, 1), 1.0)[keep]
-        w = self.weight[idx]
-        self.value[idx] = (self.value[idx] * w + obs) / (w + 1)
-        self.weight[idx] = w + 1
+        # voxel (i, j, k) in the camera: base + i * step_i + j * step_j + k * step_k
+        base = (self.grid.origin - t) @ R
+        steps = self.grid.voxel * R  # rows: the world's axes in the camera
+        _integrate(
+            self.value,
+            self.weight,
+            np.asarray(self.grid.shape, np.int64),
+            base,
+            np.ascontiguousarray(steps),
+            np.asarray(K, np.float64),
+            np.ascontiguousarray(depth, np.float64),
+            self.truncation,
+        )
 
     def mesh(self) -> tuple[np.ndarray, np.ndarray]:
         """(vertices [V, 3] world, faces [F, 3]) of the zero level, within the voxels some view
@@ -99,6 +88,36 @@ class Tsdf:
         return verts + self.grid.origin, faces.astype(np.int64)
 
 
+@numba.njit(parallel=True, cache=True)
+def _integrate(value, weight, shape, base, steps, K, depth, truncation):  # pragma: no cover
+    H, W = depth.shape
+    nx, ny, nz = shape[0], shape[1], shape[2]
+    for i in numba.prange(nx):
+        for j in range(ny):
+            for k in range(nz):
+                x = base[0] + i * steps[0, 0] + j * steps[1, 0] + k * steps[2, 0]
+                y = base[1] + i * steps[0, 1] + j * steps[1, 1] + k * steps[2, 1]
+                z = base[2] + i * steps[0, 2] + j * steps[1, 2] + k * steps[2, 2]
+                if z <= 1e-6:
+                    continue
+                u = int(np.floor(K[0, 0] * x / z + K[0, 2] + 0.5))
+                v = int(np.floor(K[1, 1] * y / z + K[1, 2] + 0.5))
+                if u < 0 or u >= W or v < 0 or v >= H:
+                    continue
+                d = depth[v, u]
+                if d > 0:
+                    sdf = d - z
+                    if sdf <= -truncation:  # hidden behind the surface: nothing known
+                        continue
+                    obs = min(1.0, sdf / truncation)
+                else:  # the ray meets nothing: empty
+                    obs = 1.0
+                n = (i * ny + j) * nz + k
+                w = weight[n]
+                value[n] = (value[n] * w + obs) / (w + 1)
+                weight[n] = w + 1
+
+
 def largest_parts(
     vertices: np.ndarray, faces: np.ndarray, keep_share: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -115,3 +134,19 @@ def largest_parts(
         [p for p, a in zip(parts, areas, strict=True) if a >= keep_share * areas.max()]
     )
     return np.asarray(kept.vertices), np.asarray(kept.faces)
+
+
+def simplified(
+    vertices: np.ndarray, faces: np.ndarray, max_triangles: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh with at most about ``max_triangles`` (quadric edge collapse, fast_simplification):
+    marching cubes gives two triangles per voxel of surface, far more than the views resolve
+    where the voxels are fine, and the texture atlas takes time with every triangle."""
+    if len(faces) <= max_triangles:
+        return vertices, faces
+    import fast_simplification
+
+    v, f = fast_simplification.simplify(
+        vertices.astype(np.float64), faces.astype(np.int64), 1 - max_triangles / len(faces)
+    )
+    return np.asarray(v), np.asarray(f, np.int64)

@@ -4,7 +4,7 @@ cubes (recon/tsdf.py), the texture atlas and its baking (recon/bake.py)."""
 import numpy as np
 import pytest
 
-from evcap.recon.tsdf import Grid, Tsdf, largest_parts
+from evcap.recon.tsdf import Grid, Tsdf, largest_parts, simplified
 from evcap.sim.trajectory import look_at
 
 CENTRE, RADIUS = np.array([0.1, -0.05, 0.0]), 0.5
@@ -45,6 +45,11 @@ def test_fused_depth_of_a_sphere_gives_the_sphere():
     normals = np.cross(*(vertices[faces[:, 1:]] - vertices[faces[:, :1]]).transpose(1, 0, 2))
     outward = ((vertices[faces].mean(1) - CENTRE) * normals).sum(1)
     assert (outward > 0).mean() > 0.99  # the normals face the empty side
+    # simplified to a tenth of its triangles, it still lies on the sphere
+    fewer_v, fewer_f = simplified(vertices, faces, len(faces) // 10)
+    assert len(fewer_f) <= len(faces) // 10 + 10
+    r = np.linalg.norm(fewer_v - CENTRE, axis=1)
+    assert np.abs(r - RADIUS).mean() < 0.01 * RADIUS
 
 
 def test_a_floater_some_views_see_through_is_carved_and_pieces_are_dropped():
