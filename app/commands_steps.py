@@ -472,6 +472,14 @@ def _mesh_arguments(p: argparse.ArgumentParser) -> None:
         "surface's extent / 192)",
     )
     p.add_argument("--views", type=int, default=60, help="views along the camera path fused")
+    p.add_argument(
+        "--bounds",
+        type=float,
+        nargs=6,
+        metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
+        help="keep only the box between these corners (scene units, z up; `evcap view` "
+        "shows the axes): the object without stage I's backdrop",
+    )
     p.add_argument("--texture-size", type=int, default=1024, help="the textures' side, pixels")
     p.add_argument(
         "--triangles", type=int, default=40_000, help="the mesh simplified to about this many"
@@ -488,6 +496,7 @@ def _mesh_config(args: argparse.Namespace):
     if args.resolution is not None and not args.resolution > 0:
         raise InputError("--resolution must be a positive voxel size (scene units)")
     return MeshConfig(
+        bounds=(tuple(args.bounds[:3]), tuple(args.bounds[3:])) if args.bounds else None,
         voxel=args.resolution,
         views=args.views,
         texture_size=args.texture_size,

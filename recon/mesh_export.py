@@ -40,6 +40,8 @@ class MeshConfig:
     """How the mesh is made from a reconstruction."""
 
     voxel: float | None = None  # scene units; None: the surface's extent / voxels_across
+    # (min corner, max corner) of the box kept, scene units; None: all the views see
+    bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     voxels_across: int = 192
     views: int = 60  # views along the camera path, fused and baked
     render_scale: float = 1.0  # of the sensor's focal length
@@ -201,7 +203,8 @@ def export_mesh(
 
 
 def _grid_of(views: list[View], config: MeshConfig) -> Grid:
-    """The voxels around what the views see (the middle 99 % of their surface points)."""
+    """The voxels around what the views see (the middle 99 % of their surface points), or
+    within the config's bounds."""
     points = []
     for view in views:
         v, u = np.nonzero(view.depth > 0)
@@ -210,11 +213,21 @@ def _grid_of(views: list[View], config: MeshConfig) -> Grid:
         cam = np.concatenate([cam * z[:, None], z[:, None]], 1)
         points.append(cam[::7] @ view.T_world_cam[:3, :3].T + view.T_world_cam[:3, 3])
     points = np.concatenate(points)
+    if config.bounds is not None:
+        lo, hi = (np.asarray(b, np.float64) for b in config.bounds)
+        if not (hi > lo).all():
+            raise InputError(f"--bounds: each of the max corner {hi} must exceed the min {lo}")
+        points = points[((points >= lo) & (points <= hi)).all(1)]
     if len(points) < 100:
-        raise InputError("the reconstruction renders no opaque surface along the camera path")
+        where = " inside --bounds" if config.bounds is not None else ""
+        raise InputError(
+            f"the reconstruction renders no opaque surface{where} along the camera path"
+        )
     lo, hi = np.percentile(points, 0.5, axis=0), np.percentile(points, 99.5, axis=0)
     extent = float((hi - lo).max())
     voxel = config.voxel or extent / config.voxels_across
+    if config.bounds is not None:  # the box as it is: what lies outside is not wanted
+        return Grid.around(*(np.asarray(b, np.float64) for b in config.bounds), voxel)
     margin = 0.05 * extent + 2 * config.truncation_voxels * voxel
     return Grid.around(lo - margin, hi + margin, voxel)
 

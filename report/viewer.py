@@ -77,6 +77,11 @@ def write_folder_viewer(
         except InputError as e:  # the Gaussians and the path are still worth seeing
             note = f"no mesh: {e}"
             say(note)
+    if asset is not None:  # what --bounds is read against
+        lo, hi = asset.vertices.min(0), asset.vertices.max(0)
+        note += "; the mesh spans " + ", ".join(
+            f"{a} {lo[k]:.3g} to {hi[k]:.3g}" for k, a in enumerate("xyz")
+        )
     field, _ = load_checkpoint(folder.checkpoint("radiance"))
     g = field.gaussians
     with torch.no_grad():
@@ -119,6 +124,7 @@ def write_viewer(scene: Scene3D, path: Path, title: str) -> Path:
         "pointColors": _b64(np.clip(srgb(scene.point_colors), 0, 1) * 255, np.uint8),
         "path": _b64(scene.path[:, :3, 3], np.float32),
         "frusta": _b64(_frusta(scene.path, scene.K, scene.size), np.float32),
+        "axes": _b64(_axes(scene), np.float32),
         "note": scene.note,
     }
     if scene.vertices is not None:
@@ -152,6 +158,13 @@ def _escape(text: str) -> str:
     from html import escape
 
     return escape(text)
+
+
+def _axes(scene: Scene3D) -> np.ndarray:
+    """[6, 3] the world's x, y and z axes from its origin (their ends), as long as the path
+    is wide: what `evcap export --bounds` is read against."""
+    span = float(np.linalg.norm(np.ptp(scene.path[:, :3, 3], axis=0))) if len(scene.path) else 1
+    return np.concatenate([np.zeros((3, 3)), np.eye(3) * (span or 1.0)], 1).reshape(6, 3)
 
 
 def _frusta(path: np.ndarray, K: np.ndarray, size: tuple[int, int]) -> np.ndarray:

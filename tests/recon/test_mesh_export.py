@@ -134,3 +134,15 @@ def test_evcap_export_and_view_from_the_command_line(surface_reconstruction, tmp
     assert "--views must be at least 1" in capsys.readouterr().err
     assert main(["view", out, "--no-open", *small]) == 0
     assert "viewer.html" in capsys.readouterr().out
+
+
+def test_bounds_keep_only_their_box(surface_reconstruction):
+    import dataclasses
+
+    upper = dataclasses.replace(SMALL, bounds=((-1.0, -1.0, 0.1), (1.0, 1.0, 1.0)))
+    asset = export_mesh(surface_reconstruction, config=upper)
+    assert asset.vertices[:, 2].min() >= 0.1 - 1e-6
+    assert asset.vertices[:, 2].max() > 0.5  # the sphere's top is in
+    empty = dataclasses.replace(SMALL, bounds=((5.0, 5.0, 5.0), (6.0, 6.0, 6.0)))
+    with pytest.raises(InputError, match="no opaque surface inside --bounds"):
+        export_mesh(surface_reconstruction, config=empty)
