@@ -9,7 +9,7 @@ import base64
 import io
 import json
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -25,6 +25,7 @@ if TYPE_CHECKING:
 
 MAX_POINTS = 60_000  # Gaussians' centres drawn (the most opaque)
 FRUSTA = 12  # views along the path drawn as frusta
+MAX_VIEWS = 8  # rendered views in the page's strip
 
 
 @dataclass
@@ -43,6 +44,7 @@ class Scene3D:
     K: np.ndarray  # [3, 3] the sensor's
     size: tuple[int, int]  # the sensor's (width, height)
     note: str = ""  # what the page says about itself (where the mesh came from)
+    views: list[Path] = field(default_factory=list)  # rendered views' PNGs, shown in a strip
 
 
 def write_folder_viewer(
@@ -113,8 +115,27 @@ def write_folder_viewer(
         optics.K,
         (optics.width, optics.height),
         note,
+        _rendered_views(folder),
     )
     return write_viewer(scene, folder.viewer, folder.root.name)
+
+
+def _rendered_views(folder: ReconstructionFolder) -> list[Path]:
+    """The reconstruction's rendered views (stage II's render where there is one, else stage
+    I's radiance, color-corrected where it was), held-out views first."""
+    found = []
+    for split in ("test", "path"):
+        for kind, name in (("material", "radiance"), ("radiance", "radiance_cc")):
+            first = folder.view_image(kind, split, 0, name)  # type: ignore[arg-type]
+            if first.exists():
+                pattern = first.name.replace("_000_", "_*_")
+                found = sorted(first.parent.glob(pattern))
+                break
+        if found:
+            break
+    if not found:  # no truth to correct against: the radiance as rendered
+        found = sorted(folder.renders().glob("*_radiance.png"))
+    return found
 
 
 def write_viewer(scene: Scene3D, path: Path, title: str) -> Path:
@@ -126,6 +147,10 @@ def write_viewer(scene: Scene3D, path: Path, title: str) -> Path:
         "frusta": _b64(_frusta(scene.path, scene.K, scene.size), np.float32),
         "axes": _b64(_axes(scene), np.float32),
         "note": scene.note,
+        "views": [
+            "data:image/png;base64," + base64.b64encode(p.read_bytes()).decode()
+            for p in scene.views[:MAX_VIEWS]
+        ],
     }
     if scene.vertices is not None:
         data["mesh"] = {
