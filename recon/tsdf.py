@@ -53,7 +53,7 @@ class Tsdf:
 
     def integrate(self, depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -> None:
         """One pinhole view: ``depth`` [H, W] the camera z of the surface each pixel sees (0:
-        nothing there; NaN: unknown), ``K`` its intrinsics, ``T_world_cam`` its pose."""
+        nothing there), ``K`` its intrinsics, ``T_world_cam`` its pose."""
         R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
         # voxel (i, j, k) in the camera: base + i * step_i + j * step_j + k * step_k
         base = (self.grid.origin - t) @ R
@@ -105,8 +105,6 @@ def _integrate(value, weight, shape, base, steps, K, depth, truncation):  # prag
                 if u < 0 or u >= W or v < 0 or v >= H:
                     continue
                 d = depth[v, u]
-                if np.isnan(d):  # the view says nothing there
-                    continue
                 if d > 0:
                     sdf = d - z
                     if sdf <= -truncation:  # hidden behind the surface: nothing known
