@@ -266,8 +266,10 @@ def _trimesh(asset: MeshAsset, rotation: np.ndarray | None = None):
 
 
 def _write_glb(asset: MeshAsset, path: Path) -> list[Path]:
-    mesh = _trimesh(asset, Z_UP_TO_Y_UP)
-    path.write_bytes(mesh.export(file_type="glb"))
+    from trimesh.exchange.gltf import export_glb
+
+    # with the vertex normals: without them viewers shade each triangle flat
+    path.write_bytes(export_glb(_trimesh(asset, Z_UP_TO_Y_UP), include_normals=True))
     return [path]
 
 

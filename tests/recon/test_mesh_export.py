@@ -52,6 +52,8 @@ def test_the_glb_validates_with_every_texture(asset, tmp_path):
     assert pbr.metallicFactor == 0 and pbr.baseColorTexture is not None
     assert pbr.metallicRoughnessTexture is not None
     assert len(gltf.images) == 2 and len(gltf.textures) == 2
+    attributes = gltf.meshes[0].primitives[0].attributes
+    assert None not in (attributes.POSITION, attributes.NORMAL, attributes.TEXCOORD_0)
     loaded = trimesh.load(path, force="mesh")
     # y up: the world's z came out as y
     assert np.allclose(np.sort(loaded.vertices[:, 1]), np.sort(asset.vertices[:, 2]), atol=1e-5)
