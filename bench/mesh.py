@@ -2,7 +2,7 @@
 gets it (the .glb written and read back), scored where the cameras saw the scene.
 
     .venv/bin/python bench/mesh.py OUT [--session S] [--scene single_object] [--resolution V]
-        [--views N] [--texture-size S] [--name mesh]
+        [--bounds X0 Y0 Z0 X1 Y1 Z1] [--views N] [--texture-size S] [--name mesh]
 
 - Chamfer distance: points sampled over the exported mesh to the true surface, and points of the
   true surface some camera of the path saw (in its view, nothing in front) to the mesh; each
@@ -189,6 +189,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--session", help="its session (default: the one it names)")
     parser.add_argument("--scene", help="the simulated scene (default: the session's)")
     parser.add_argument("--resolution", type=float, help="the voxel size (scene units)")
+    parser.add_argument("--bounds", type=float, nargs=6, help="the box kept (evcap export's)")
     parser.add_argument("--views", type=int, default=MeshConfig.views)
     parser.add_argument("--texture-size", type=int, default=MeshConfig.texture_size)
     parser.add_argument("--samples", type=int, default=2_000_000, help="points over each surface")
@@ -200,7 +201,10 @@ def main(argv: list[str] | None = None) -> dict:
         scene = args.scene or str(s.attrs.get("scene_file") or s.attrs["scene"])
         optics = SensorOptics.from_session(s)
         track = Poses.read_file(folder.poses) if folder.poses.exists() else Poses.read(s)
-    config = MeshConfig(voxel=args.resolution, views=args.views, texture_size=args.texture_size)
+    bounds = (tuple(args.bounds[:3]), tuple(args.bounds[3:])) if args.bounds else None
+    config = MeshConfig(
+        voxel=args.resolution, bounds=bounds, views=args.views, texture_size=args.texture_size
+    )
     started = time.perf_counter()
     asset = export_mesh(folder.root, session, config, lambda m: print(m, flush=True))
     seconds = time.perf_counter() - started
@@ -212,6 +216,7 @@ def main(argv: list[str] | None = None) -> dict:
     figures = {
         "out": str(folder.root),
         "scene": scene,
+        "bounds": args.bounds,
         "export_seconds": seconds,
         "vertices": len(asset.vertices),
         "triangles": len(asset.faces),
