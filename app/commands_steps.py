@@ -548,7 +548,7 @@ def _view_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _view(args: argparse.Namespace) -> int:
-    from evcap.report.viewer import write_folder_viewer
+    from evcap.app.view import write_folder_viewer
 
     page = write_folder_viewer(args.output, args.session, _mesh_config(args))
     print(f"{page}: open it in a browser (self-contained, no network needed)")
@@ -562,7 +562,7 @@ def _view(args: argparse.Namespace) -> int:
 
 VIEW = Command(
     "view",
-    help="the reconstruction in 3D in a browser: mesh, Gaussians, camera path",
+    help="the reconstruction in 3D in a browser: mesh, Gaussians, path",
     description="Write OUT/viewer.html (one self-contained page, WebGL) with the textured "
     "mesh (OUT/mesh.glb, exported first when it is not there; its options as `evcap "
     "export`'s), the Gaussians' centres and the camera path, and open it in the browser. "

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from evcap.atomic_write import atomic_path
 from evcap.errors import InputError
 from evcap.images import srgb
 from evcap.recon.bake import View, atlas, bake, sample, texels, texture
@@ -110,8 +111,10 @@ def read_glb(path: str | Path) -> MeshAsset:
         base = np.asarray(material.baseColorTexture.convert("RGB"), np.float64) / 255
         mr = np.asarray(material.metallicRoughnessTexture.convert("RGB"), np.float64) / 255
         uv = np.asarray(mesh.visual.uv)
-    except (ValueError, AttributeError, OSError) as e:
-        raise InputError(f"{path}: not a mesh written by `evcap export` ({e})") from None
+    except (ValueError, AttributeError, OSError, KeyError, NotImplementedError) as e:
+        raise InputError(
+            f"{path}: not a mesh written by `evcap export` ({e}); delete it and run again"
+        ) from None
     return MeshAsset(
         np.asarray(mesh.vertices) @ Z_UP_TO_Y_UP,  # the inverse of the rotation written
         np.asarray(mesh.faces),
@@ -269,7 +272,9 @@ def _write_glb(asset: MeshAsset, path: Path) -> list[Path]:
     from trimesh.exchange.gltf import export_glb
 
     # with the vertex normals: without them viewers shade each triangle flat
-    path.write_bytes(export_glb(_trimesh(asset, Z_UP_TO_Y_UP), include_normals=True))
+    data = export_glb(_trimesh(asset, Z_UP_TO_Y_UP), include_normals=True)
+    with atomic_path(path) as partial:  # an interrupted write leaves no half a .glb
+        partial.write_bytes(data)
     return [path]
 
 

@@ -8,22 +8,14 @@ from __future__ import annotations
 import base64
 import io
 import json
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from evcap.atomic_write import write_text_atomic
-from evcap.errors import InputError
 from evcap.images import srgb
-from evcap.records.reconstruction_folder import ReconstructionFolder
 
-if TYPE_CHECKING:
-    from evcap.recon.mesh_export import MeshConfig
-
-MAX_POINTS = 60_000  # Gaussians' centres drawn (the most opaque)
 FRUSTA = 12  # views along the path drawn as frusta
 MAX_VIEWS = 8  # rendered views in the page's strip
 
@@ -45,97 +37,6 @@ class Scene3D:
     size: tuple[int, int]  # the sensor's (width, height)
     note: str = ""  # what the page says about itself (where the mesh came from)
     views: list[Path] = field(default_factory=list)  # rendered views' PNGs, shown in a strip
-
-
-def write_folder_viewer(
-    out: str | Path,
-    session: str | Path | None = None,
-    config: MeshConfig | None = None,
-    say: Callable[[str], None] = print,
-) -> Path:
-    """OUT/viewer.html for the reconstruction folder ``out``: its mesh (OUT/mesh.glb, exported
-    first when it is not there), its Gaussians and its camera path; returns the page's path."""
-    import torch
-
-    from evcap.recon.export import load_checkpoint
-    from evcap.recon.mesh_export import export_mesh, read_glb
-    from evcap.recon.optics import SensorOptics
-    from evcap.recon.sh import C0
-    from evcap.records import Poses
-    from evcap.session import Session
-
-    folder = ReconstructionFolder(out)
-    folder.check()
-    session_path = Path(session) if session is not None else folder.session()
-    asset, note = None, ""
-    if folder.mesh.exists():
-        asset, note = read_glb(folder.mesh), f"mesh: {folder.mesh.name}"
-    else:
-        say(f"no {folder.mesh.name} yet: exporting the mesh first")
-        try:
-            asset = export_mesh(folder.root, session_path, config, say)
-            asset.write(folder.mesh)
-            note = f"mesh: {asset.summary()}"
-        except InputError as e:  # the Gaussians and the path are still worth seeing
-            note = f"no mesh: {e}"
-            say(note)
-    if asset is not None:  # what --bounds is read against
-        lo, hi = asset.vertices.min(0), asset.vertices.max(0)
-        note += "; the mesh spans " + ", ".join(
-            f"{a} {lo[k]:.3g} to {hi[k]:.3g}" for k, a in enumerate("xyz")
-        )
-    field, _ = load_checkpoint(folder.checkpoint("radiance"))
-    g = field.gaussians
-    with torch.no_grad():
-        opacity = g.opacities.numpy()
-        order = np.argsort(-opacity)[:MAX_POINTS]
-        order = order[opacity[order] > 0.5]
-        points = g.means.numpy()[order]
-        colors = torch.nn.functional.softplus(C0 * g.sh_dc[order, 0]).clamp(0, 1).numpy()
-    with Session.open(session_path) as s:
-        optics = SensorOptics.from_session(s)
-        track = Poses.read_file(folder.poses) if folder.poses.exists() else Poses.read(s)
-    path = track.at(np.linspace(track.start, track.end, 200).astype(np.int64))
-    scene = Scene3D(
-        *(
-            (
-                asset.vertices,
-                asset.faces,
-                asset.normals(),
-                asset.uv,
-                asset.base_color,
-                asset.roughness,
-            )
-            if asset is not None
-            else (None,) * 6
-        ),
-        points,
-        colors,
-        path,
-        optics.K,
-        (optics.width, optics.height),
-        note,
-        _rendered_views(folder),
-    )
-    return write_viewer(scene, folder.viewer, folder.root.name)
-
-
-def _rendered_views(folder: ReconstructionFolder) -> list[Path]:
-    """The reconstruction's rendered views (stage II's render where there is one, else stage
-    I's radiance, color-corrected where it was), held-out views first."""
-    found = []
-    for split in ("test", "path"):
-        for kind, name in (("material", "radiance"), ("radiance", "radiance_cc")):
-            first = folder.view_image(kind, split, 0, name)  # type: ignore[arg-type]
-            if first.exists():
-                pattern = first.name.replace("_000_", "_*_")
-                found = sorted(first.parent.glob(pattern))
-                break
-        if found:
-            break
-    if not found:  # no truth to correct against: the radiance as rendered
-        found = sorted(folder.renders().glob("*_radiance.png"))
-    return found
 
 
 def write_viewer(scene: Scene3D, path: Path, title: str) -> Path:

@@ -293,6 +293,12 @@ def surface_roughness(points: np.ndarray) -> np.ndarray:
 
 
 @pytest.fixture(scope="session")
+def surface_material():
+    """(base color, roughness) of surface_reconstruction at points on its sphere."""
+    return surface_base_color, surface_roughness
+
+
+@pytest.fixture(scope="session")
 def surface_reconstruction(tiny_scene, tmp_path_factory) -> Path:
     import torch
 

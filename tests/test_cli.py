@@ -21,6 +21,8 @@ def test_help_lists_every_command_with_one_line():
         "poses",
         "reconstruct",
         "report",
+        "export",
+        "view",
         "batch",
         "demo",
     ]

@@ -133,6 +133,17 @@ class ReconstructionFolder:
             return []
         return sorted(p for p in folder.rglob("*.png") if relit not in p.parents)
 
+    def shown_views(self) -> list[Path]:
+        """The rendered views a page shows: stage II's render where there is one, else stage
+        I's radiance color-corrected where it was, held-out views first; else stage I's
+        radiance as rendered."""
+        for split in ("test", "path"):
+            for kind, map in (("material", "radiance"), ("radiance", "radiance_cc")):
+                first = self.view_image(kind, split, 0, map)  # type: ignore[arg-type]
+                if first.exists():
+                    return sorted(first.parent.glob(first.name.replace("_000_", "_*_")))
+        return sorted(self.renders().glob("*_radiance.png"))
+
     # -- what it holds -------------------------------------------------------------------------
 
     def holds_reconstruction(self) -> bool:

@@ -29,10 +29,8 @@ def test_the_mesh_lies_on_the_sphere_and_faces_out(asset):
     assert asset.base_color_from == "stage II" and asset.seen_share > 0.8
 
 
-def test_the_textures_hold_the_material(asset):
-    from conftest import surface_base_color as base_color
-    from conftest import surface_roughness as roughness
-
+def test_the_textures_hold_the_material(asset, surface_material):
+    base_color, roughness = surface_material
     on_sphere = asset.vertices * (RADIUS / np.linalg.norm(asset.vertices, axis=1, keepdims=True))
     error = np.abs(asset.base_color_at(asset.uv) - base_color(on_sphere))
     assert np.median(error) < 0.02
@@ -83,6 +81,15 @@ def test_obj_and_ply_are_written_beside_their_textures(asset, tmp_path):
         asset.write(tmp_path / "asset.fbx")
 
 
+def test_a_broken_glb_is_refused_with_what_to_do(tmp_path):
+    from evcap.recon.mesh_export import read_glb
+
+    for name, data in (("noise.glb", bytes(range(256)) * 4), ("cut.glb", b"glTF" + b"\0" * 40)):
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(InputError, match="delete it and run again"):
+            read_glb(tmp_path / name)
+
+
 def test_a_folder_without_a_reconstruction_is_refused(tmp_path):
     with pytest.raises(InputError, match="not a reconstruction folder"):
         export_mesh(tmp_path)
@@ -92,8 +99,8 @@ def test_a_folder_without_a_reconstruction_is_refused(tmp_path):
 
 
 def test_the_viewer_draws_the_mesh_in_a_browser(surface_reconstruction, screenshot):
+    from evcap.app.view import write_folder_viewer
     from evcap.records.reconstruction_folder import ReconstructionFolder
-    from evcap.report.viewer import write_folder_viewer
 
     folder = ReconstructionFolder(surface_reconstruction)
     folder.mesh.unlink(missing_ok=True)

@@ -1,0 +1,90 @@
+"""`evcap view`: OUT/viewer.html gathered from a reconstruction folder: its mesh (exported first
+when there is none), its Gaussians' centres and its camera path, drawn by report/viewer.py."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from evcap.errors import InputError
+from evcap.recon.export import load_checkpoint
+from evcap.recon.mesh_export import MeshConfig, export_mesh, read_glb
+from evcap.recon.optics import SensorOptics
+from evcap.recon.sh import C0
+from evcap.records import Poses
+from evcap.records.reconstruction_folder import ReconstructionFolder
+from evcap.report.viewer import Scene3D, write_viewer
+from evcap.session import Session
+
+MAX_POINTS = 60_000  # Gaussians' centres drawn (the most opaque)
+
+
+def write_folder_viewer(
+    out: str | Path,
+    session: str | Path | None = None,
+    config: MeshConfig | None = None,
+    say: Callable[[str], None] = print,
+) -> Path:
+    """OUT/viewer.html for the reconstruction folder ``out``: its mesh (OUT/mesh.glb, exported
+    first when it is not there), its Gaussians and its camera path; returns the page's path."""
+    folder = ReconstructionFolder(out)
+    folder.check()
+    session_path = Path(session) if session is not None else folder.session()
+    asset, note = None, ""
+    if folder.mesh.exists():
+        say(
+            f"showing {folder.mesh}, made earlier (`evcap export {folder.root} -o "
+            f"{folder.mesh}` makes it again with other options)"
+        )
+        asset, note = read_glb(folder.mesh), f"mesh: {folder.mesh.name}"
+    else:
+        say(f"no {folder.mesh.name} yet: exporting the mesh first")
+        try:
+            asset = export_mesh(folder.root, session_path, config, say)
+            asset.write(folder.mesh)
+            note = f"mesh: {asset.summary()}"
+        except InputError as e:  # the Gaussians and the path are still worth seeing
+            note = f"no mesh: {e}"
+            say(note)
+    if asset is not None:  # what --bounds is read against
+        lo, hi = asset.vertices.min(0), asset.vertices.max(0)
+        note += "; the mesh spans " + ", ".join(
+            f"{a} {lo[k]:.3g} to {hi[k]:.3g}" for k, a in enumerate("xyz")
+        )
+    field, _ = load_checkpoint(folder.checkpoint("radiance"))
+    g = field.gaussians
+    with torch.no_grad():
+        opacity = g.opacities.numpy()
+        order = np.argsort(-opacity)[:MAX_POINTS]
+        order = order[opacity[order] > 0.5]
+        points = g.means.numpy()[order]
+        colors = torch.nn.functional.softplus(C0 * g.sh_dc[order, 0]).clamp(0, 1).numpy()
+    with Session.open(session_path) as s:
+        optics = SensorOptics.from_session(s)
+        track = Poses.read_file(folder.poses) if folder.poses.exists() else Poses.read(s)
+    path = track.at(np.linspace(track.start, track.end, 200).astype(np.int64))
+    scene = Scene3D(
+        *(
+            (
+                asset.vertices,
+                asset.faces,
+                asset.normals(),
+                asset.uv,
+                asset.base_color,
+                asset.roughness,
+            )
+            if asset is not None
+            else (None,) * 6
+        ),
+        points,
+        colors,
+        path,
+        optics.K,
+        (optics.width, optics.height),
+        note,
+        folder.shown_views(),
+    )
+    return write_viewer(scene, folder.viewer, folder.root.name)
