@@ -79,8 +79,9 @@ ROWS: dict[str, Row] = {
     "davis346": Row(DAVIS346),
     "davis346, uncalibrated": Row(DAVIS346, "nominal"),
     "davis346, uncalibrated 0.2": Row(DAVIS346, "nominal", (0.2, 0.2)),
-    "davis346, noise rates": Row(DAVIS346, noise_rates=True),
     "davis346, refractory bound": Row(DAVIS346, refractory_bound=True),
+    # all the calibration knows: thresholds, hot pixels, refractory period and noise rates
+    "davis346, bound and noise rates": Row(DAVIS346, noise_rates=True, refractory_bound=True),
     "pose noise 0.5 deg": Row(IDEAL, pose_noise_deg=0.5),
     "pose noise 1 deg": Row(IDEAL, pose_noise_deg=1.0),
     "pose noise 2 deg": Row(IDEAL, pose_noise_deg=2.0),
