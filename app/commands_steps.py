@@ -18,6 +18,7 @@ from evcap.recon.config import (
     REFINE_POSES,
     STAGES,
     ZERO_EVENTS,
+    MeshConfig,
 )
 
 
@@ -469,9 +470,8 @@ def _mesh_arguments(p: argparse.ArgumentParser) -> None:
         type=float,
         metavar="VOXEL",
         help="the voxel size of the depth fusion, in the scene's units (default: the "
-        "surface's extent / 192)",
+        f"surface's extent / {MeshConfig.voxels_across})",
     )
-    p.add_argument("--views", type=int, default=60, help="views along the camera path fused")
     p.add_argument(
         "--bounds",
         type=float,
@@ -480,15 +480,16 @@ def _mesh_arguments(p: argparse.ArgumentParser) -> None:
         help="keep only the box between these corners (scene units, z up; `evcap view` "
         "shows the axes): the object without stage I's backdrop",
     )
-    p.add_argument("--texture-size", type=int, default=1024, help="the textures' side, pixels")
-    p.add_argument(
-        "--triangles", type=int, default=40_000, help="the mesh simplified to about this many"
-    )
+    for flag, default, text in (
+        ("--views", MeshConfig.views, "views along the camera path fused"),
+        ("--texture-size", MeshConfig.texture_size, "the textures' side, pixels"),
+        ("--triangles", MeshConfig.max_triangles, "the mesh simplified to about this many"),
+    ):
+        p.add_argument(flag, type=int, default=default, help=f"{text} (default %(default)s)")
     p.add_argument("--session", help="the session (default: the one OUT was made from)")
 
 
 def _mesh_config(args: argparse.Namespace):
-    from evcap.recon.mesh_export import MeshConfig
 
     for name in ("views", "texture_size", "triangles"):
         if getattr(args, name) < 1:

@@ -10,8 +10,9 @@ import numpy as np
 import torch
 
 from evcap.errors import InputError
+from evcap.recon.config import MeshConfig
 from evcap.recon.export import load_checkpoint
-from evcap.recon.mesh_export import MeshConfig, export_mesh, read_glb
+from evcap.recon.mesh_export import export_mesh, read_glb
 from evcap.recon.optics import SensorOptics
 from evcap.recon.sh import C0
 from evcap.records import Poses
@@ -29,19 +30,18 @@ def write_folder_viewer(
     say: Callable[[str], None] = print,
 ) -> Path:
     """OUT/viewer.html for the reconstruction folder ``out``: its mesh (OUT/mesh.glb, exported
-    first when it is not there), its Gaussians and its camera path; returns the page's path."""
+    again when it is missing, older than the reconstruction, or ``config`` asks for another),
+    its Gaussians and its camera path; returns the page's path."""
     folder = ReconstructionFolder(out)
     folder.check()
     session_path = Path(session) if session is not None else folder.session()
     asset, note = None, ""
-    if folder.mesh.exists():
-        say(
-            f"showing {folder.mesh}, made earlier (`evcap export {folder.root} -o "
-            f"{folder.mesh}` makes it again with other options)"
-        )
+    why = _export_again(folder, config)
+    if why is None:
+        say(f"showing {folder.mesh}, made earlier")
         asset, note = read_glb(folder.mesh), f"mesh: {folder.mesh.name}"
     else:
-        say(f"no {folder.mesh.name} yet: exporting the mesh first")
+        say(f"{why}: exporting the mesh first")
         try:
             asset = export_mesh(folder.root, session_path, config, say)
             asset.write(folder.mesh)
@@ -71,7 +71,7 @@ def write_folder_viewer(
             (
                 asset.vertices,
                 asset.faces,
-                asset.normals(),
+                asset.normals,
                 asset.uv,
                 asset.base_color,
                 asset.roughness,
@@ -88,3 +88,16 @@ def write_folder_viewer(
         folder.shown_views(),
     )
     return write_viewer(scene, folder.viewer, folder.root.name)
+
+
+def _export_again(folder: ReconstructionFolder, config: MeshConfig | None) -> str | None:
+    """Why OUT/mesh.glb is to be made again; None when it holds this reconstruction as asked."""
+    if not folder.mesh.exists():
+        return f"no {folder.mesh.name} yet"
+    if config is not None and config != MeshConfig():
+        return "mesh options given"
+    made = folder.mesh.stat().st_mtime
+    stages = [folder.checkpoint(stage) for stage in ("radiance", "material")]
+    if any(p.exists() and p.stat().st_mtime > made for p in stages):
+        return f"{folder.mesh.name} is older than the reconstruction"
+    return None

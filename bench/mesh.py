@@ -28,7 +28,8 @@ from pathlib import Path
 import numpy as np
 from _common import RESULTS, machine, scene_file
 
-from evcap.recon.mesh_export import MeshAsset, MeshConfig, export_mesh, read_glb
+from evcap.recon.config import MeshConfig
+from evcap.recon.mesh_export import MeshAsset, export_mesh, read_glb
 
 PATH_VIEWS = 40  # cameras of the path that decide which of the truth was seen
 

@@ -44,7 +44,7 @@ def atlas(vertices: np.ndarray, faces: np.ndarray, size: int) -> Atlas:
     if charts.atlas_count != 1:  # the charts did not fit one texture of that size
         raise InputError(
             f"the mesh's charts need {charts.atlas_count} textures of {size} px: "
-            "give a larger texture size"
+            "give a larger --texture-size"
         )
     source, new_faces, uv = charts[0]
     return Atlas(vertices[source], new_faces.astype(np.int64), uv.astype(np.float64), source)

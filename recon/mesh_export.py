@@ -7,7 +7,8 @@ II's base color and roughness, rendered from the same views, are baked into text
 so the textures are its base color and roughness as they are.
 
 Formats: .glb (glTF 2.0, binary: baseColorTexture in sRGB, metallicRoughnessTexture with
-roughness in G and metallic 0 in B); .obj (with its .mtl and the textures as PNG beside it);
+roughness in G and metallic 0 in B); .obj (with its .mtl and two PNGs beside it, named after it:
+the base color as map_Kd, the roughness as map_Pr, the MTL's PBR extension that Blender reads);
 .ply (vertex colors: the base color at each vertex, and a roughness property). Positions are in
 the session's units (metres where its poses are metric). The world's z is up; glTF's y is up
 by definition, so the .glb holds the world turned about x (x, y, z) -> (x, z, -y), which
@@ -27,31 +28,15 @@ from evcap.atomic_write import atomic_path
 from evcap.errors import InputError
 from evcap.images import srgb
 from evcap.recon.bake import View, atlas, bake, sample, texels, texture
+from evcap.recon.config import MeshConfig
 from evcap.recon.tsdf import Grid, Tsdf, largest_parts, simplified
 from evcap.records import Poses
 from evcap.records.reconstruction_folder import ReconstructionFolder
 
 FORMATS = (".glb", ".obj", ".ply")
+LOOK = "is stage I's object recovered? its report shows it (`evcap report OUT`)"
 # the world (z up) as glTF's frame (y up): x stays, y <- z, z <- -y
 Z_UP_TO_Y_UP = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
-
-
-@dataclass(frozen=True)
-class MeshConfig:
-    """How the mesh is made from a reconstruction."""
-
-    voxel: float | None = None  # scene units; None: the surface's extent / voxels_across
-    # (min corner, max corner) of the box kept, scene units; None: all the views see
-    bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
-    voxels_across: int = 192
-    views: int = 60  # views along the camera path, fused and baked
-    render_scale: float = 1.0  # of the sensor's focal length
-    truncation_voxels: float = 4.0
-    min_alpha: float = 0.5  # less opaque pixels see the background: empty space
-    keep_share: float = 0.05  # parts with less of the largest part's area are floaters
-    max_triangles: int = 40_000  # the mesh simplified to this many (about)
-    texture_size: int = 1024
-    depth_tolerance_voxels: float = 3.0  # a texel is what a view sees within this
 
 
 @dataclass
@@ -60,19 +45,14 @@ class MeshAsset:
 
     vertices: np.ndarray  # [V, 3]
     faces: np.ndarray  # [F, 3]
+    normals: np.ndarray  # [V, 3] unit, smooth across the atlas's seams
     uv: np.ndarray  # [V, 2], v down
     base_color: np.ndarray  # [S, S, 3] linear, 0..1
     roughness: np.ndarray  # [S, S] 0..1
-    base_color_from: str  # "stage II" or "stage I's radiance (no stage II)"
+    base_color_from: str  # "stage II" or "stage I's radiance (stage II not run)"
     voxel: float
     views: int
     seen_share: float  # of the texels, seen by some view
-
-    def normals(self) -> np.ndarray:
-        """[V, 3] unit vertex normals (area-weighted face normals)."""
-        import trimesh
-
-        return np.asarray(trimesh.Trimesh(self.vertices, self.faces, process=False).vertex_normals)
 
     def base_color_at(self, uv: np.ndarray) -> np.ndarray:
         """[N, 3] linear base color at texture coordinates [N, 2]."""
@@ -106,18 +86,24 @@ def read_glb(path: str | Path) -> MeshAsset:
     from evcap.images import srgb_to_linear
 
     try:
-        mesh = trimesh.load(path, force="mesh", process=False)
+        # the scene's one mesh as stored (force="mesh" would recompute its normals)
+        scene = trimesh.load(path, process=False)
+        meshes = list(scene.geometry.values()) if isinstance(scene, trimesh.Scene) else [scene]
+        if len(meshes) != 1:
+            raise ValueError(f"{len(meshes)} meshes, one expected")
+        mesh = meshes[0]
         material = mesh.visual.material
         base = np.asarray(material.baseColorTexture.convert("RGB"), np.float64) / 255
         mr = np.asarray(material.metallicRoughnessTexture.convert("RGB"), np.float64) / 255
-        uv = np.asarray(mesh.visual.uv)
-    except (ValueError, AttributeError, OSError, KeyError, NotImplementedError) as e:
+        uv = np.asarray(mesh.visual.uv, np.float64).reshape(len(mesh.vertices), 2)
+    except (ValueError, AttributeError, OSError, KeyError, IndexError, NotImplementedError) as e:
         raise InputError(
             f"{path}: not a mesh written by `evcap export` ({e}); delete it and run again"
         ) from None
     return MeshAsset(
         np.asarray(mesh.vertices) @ Z_UP_TO_Y_UP,  # the inverse of the rotation written
         np.asarray(mesh.faces),
+        np.asarray(mesh.vertex_normals) @ Z_UP_TO_Y_UP,
         np.stack([uv[:, 0], 1 - uv[:, 1]], 1),
         srgb_to_linear(base),
         mr[..., 1],
@@ -181,13 +167,11 @@ def export_mesh(
         tsdf.integrate(view.depth, view.K, view.T_world_cam)
     vertices, faces = tsdf.mesh()
     if not len(faces):
-        raise InputError(
-            f"{folder.root}: no surface found in the reconstruction's depth (is stage I's "
-            "object recovered? see its report)"
-        )
+        raise InputError(f"{folder.root}: no surface found in the reconstruction's depth; {LOOK}")
     vertices, faces = largest_parts(vertices, faces, config.keep_share)
     vertices, faces = simplified(vertices, faces, config.max_triangles)
     say(f"baking {config.texture_size} px textures onto {len(faces):,} triangles")
+    normals = _vertex_normals(vertices, faces)  # before the atlas splits its seams
     a = atlas(vertices, faces, config.texture_size)
     t = texels(a, config.texture_size)
     values, seen = bake(t, views, config.depth_tolerance_voxels * grid3.voxel, config.min_alpha)
@@ -195,6 +179,7 @@ def export_mesh(
     return MeshAsset(
         a.vertices,
         a.faces,
+        normals[a.source_vertex],
         a.uv,
         image[..., :3],
         image[..., 3],
@@ -203,6 +188,12 @@ def export_mesh(
         config.views,
         float(seen.mean()) if len(seen) else 0.0,
     )
+
+
+def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    import trimesh
+
+    return np.asarray(trimesh.Trimesh(vertices, faces, process=False).vertex_normals)
 
 
 def _grid_of(views: list[View], config: MeshConfig) -> Grid:
@@ -224,7 +215,7 @@ def _grid_of(views: list[View], config: MeshConfig) -> Grid:
     if len(points) < 100:
         where = " inside --bounds" if config.bounds is not None else ""
         raise InputError(
-            f"the reconstruction renders no opaque surface{where} along the camera path"
+            f"the reconstruction renders no opaque surface{where} along the camera path; {LOOK}"
         )
     lo, hi = np.percentile(points, 0.5, axis=0), np.percentile(points, 99.5, axis=0)
     extent = float((hi - lo).max())
@@ -261,39 +252,52 @@ def _trimesh(asset: MeshAsset, rotation: np.ndarray | None = None):
         metallicFactor=0.0,
         roughnessFactor=1.0,
     )
-    vertices = asset.vertices if rotation is None else asset.vertices @ rotation.T
+    R = np.eye(3) if rotation is None else rotation
     # trimesh's uv have v up (it flips them into glTF's v down)
     uv = np.stack([asset.uv[:, 0], 1 - asset.uv[:, 1]], 1)
     visual = trimesh.visual.TextureVisuals(uv=uv, material=material)
-    return trimesh.Trimesh(vertices, asset.faces, visual=visual, process=False)
+    return trimesh.Trimesh(
+        asset.vertices @ R.T,
+        asset.faces,
+        vertex_normals=asset.normals @ R.T,
+        visual=visual,
+        process=False,
+    )
 
 
 def _write_glb(asset: MeshAsset, path: Path) -> list[Path]:
     from trimesh.exchange.gltf import export_glb
 
     # with the vertex normals: without them viewers shade each triangle flat
-    data = export_glb(_trimesh(asset, Z_UP_TO_Y_UP), include_normals=True)
-    with atomic_path(path) as partial:  # an interrupted write leaves no half a .glb
-        partial.write_bytes(data)
+    _write_bytes(path, export_glb(_trimesh(asset, Z_UP_TO_Y_UP), include_normals=True))
     return [path]
 
 
 def _write_obj(asset: MeshAsset, path: Path) -> list[Path]:
+    import io
+
     from trimesh.exchange.obj import export_obj
 
-    text, files = export_obj(
+    # trimesh's .mtl keeps the base color only: the .mtl is ours, with the roughness
+    text, _ = export_obj(
         _trimesh(asset),
         include_normals=True,
         include_texture=True,
         return_texture=True,
         mtl_name=f"{path.stem}.mtl",
     )
-    written = [path]
-    path.write_text(text)
-    for name, data in files.items():
-        (path.parent / name).write_bytes(data)
-        written.append(path.parent / name)
-    return written
+    base, mr = _images(asset)
+    names = {"map_Kd": f"{path.stem}_base_color.png", "map_Pr": f"{path.stem}_roughness.png"}
+    mtl = "newmtl evcap\nKd 1 1 1\nKs 0 0 0\nPm 0\n"
+    mtl += "".join(f"{key} {name}\n" for key, name in names.items())
+    files = {path: text.encode(), path.with_suffix(".mtl"): mtl.encode()}
+    for name, image in ((names["map_Kd"], base), (names["map_Pr"], mr.getchannel("G"))):
+        buffer = io.BytesIO()
+        image.save(buffer, "PNG")
+        files[path.parent / name] = buffer.getvalue()
+    for target, data in files.items():
+        _write_bytes(target, data)
+    return list(files)
 
 
 def _write_ply(asset: MeshAsset, path: Path) -> list[Path]:
@@ -308,5 +312,10 @@ def _write_ply(asset: MeshAsset, path: Path) -> list[Path]:
         vertex_attributes={"roughness": rough},
         process=False,
     )
-    path.write_bytes(mesh.export(file_type="ply", include_attributes=True))
+    _write_bytes(path, mesh.export(file_type="ply", include_attributes=True))
     return [path]
+
+
+def _write_bytes(path: Path, data: bytes) -> None:
+    with atomic_path(path) as partial:  # an interrupted write leaves no half a file
+        partial.write_bytes(data)

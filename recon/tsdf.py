@@ -2,8 +2,9 @@
 level (marching cubes, scikit-image), cleaned of floaters and simplified: the mesh a
 reconstruction's depth describes.
 
-Each voxel holds the weighted mean of its signed distance to the surface along the rays of the
-views that see it (positive in front, clipped to the truncation distance, in units of it). A
+Each voxel holds the mean over the views that see it of its signed distance to the surface
+along the view's axis (the depth seen less the voxel's; positive in front, clipped to the
+truncation distance, in units of it). A
 ray that meets nothing (depth 0: the pixel sees through to the background) says its voxels
 are empty: a floater that some views show and others see through is carved away.
 """
@@ -34,10 +35,11 @@ class Grid:
         """The grid covering the box lo..hi; InputError when it would be too large."""
         shape = tuple(int(math.ceil(x)) + 1 for x in (np.asarray(hi) - lo) / voxel)
         if math.prod(shape) > MAX_VOXELS:
+            fits = voxel * (math.prod(shape) / MAX_VOXELS) ** (1 / 3) * 1.01
             raise InputError(
                 f"a voxel of {voxel:.4g} makes {shape[0]} x {shape[1]} x {shape[2]} voxels "
-                f"over the object ({math.prod(shape) / 1e6:.0f} M, at most "
-                f"{MAX_VOXELS / 1e6:.0f} M): give a larger --resolution"
+                f"({math.prod(shape) / 1e6:.0f} M, at most {MAX_VOXELS / 1e6:.0f} M): give a "
+                f"larger voxel (--resolution {fits:.3g} or more) or a smaller --bounds box"
             )
         return cls(np.asarray(lo, np.float64), float(voxel), shape)  # type: ignore[arg-type]
 
@@ -53,7 +55,7 @@ class Tsdf:
 
     def integrate(self, depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -> None:
         """One pinhole view: ``depth`` [H, W] the camera z of the surface each pixel sees (0:
-        nothing there), ``K`` its intrinsics, ``T_world_cam`` its pose."""
+        nothing there; NaN: not known), ``K`` its intrinsics, ``T_world_cam`` its pose."""
         R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
         # voxel (i, j, k) in the camera: base + i * step_i + j * step_j + k * step_k
         base = (self.grid.origin - t) @ R
@@ -105,6 +107,8 @@ def _integrate(value, weight, shape, base, steps, K, depth, truncation):  # prag
                 if u < 0 or u >= W or v < 0 or v >= H:
                     continue
                 d = depth[v, u]
+                if np.isnan(d):  # the pixel says nothing
+                    continue
                 if d > 0:
                     sdf = d - z
                     if sdf <= -truncation:  # hidden behind the surface: nothing known

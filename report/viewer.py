@@ -63,7 +63,9 @@ def write_viewer(scene: Scene3D, path: Path, title: str) -> Path:
             "roughness": _png(np.repeat(scene.roughness[..., None], 3, -1) * 255),
         }
     page = (Path(__file__).parent / "viewer_page.html").read_text()
-    html = page.replace("__TITLE__", _escape(title)).replace("__DATA__", json.dumps(data))
+    # "</" inside a script would end it (a path or a message in the note may hold one)
+    script = json.dumps(data).replace("</", "<\\/")
+    html = page.replace("__TITLE__", _escape(title)).replace("__DATA__", script)
     write_text_atomic(path, html)
     return path
 

@@ -137,8 +137,8 @@ class ReconstructionFolder:
         """The rendered views a page shows: stage II's render where there is one, else stage
         I's radiance color-corrected where it was, held-out views first; else stage I's
         radiance as rendered."""
-        for split in ("test", "path"):
-            for kind, map in (("material", "radiance"), ("radiance", "radiance_cc")):
+        for kind, map in (("material", "radiance"), ("radiance", "radiance_cc")):
+            for split in ("test", "path"):
                 first = self.view_image(kind, split, 0, map)  # type: ignore[arg-type]
                 if first.exists():
                     return sorted(first.parent.glob(first.name.replace("_000_", "_*_")))

@@ -63,7 +63,8 @@ def test_a_floater_some_views_see_through_is_carved_and_pieces_are_dropped():
             depth = np.where((blob > 0) & ((depth == 0) | (blob < depth)), blob, depth)
         tsdf.integrate(depth, K, T)
     vertices, faces = tsdf.mesh()
-    assert np.linalg.norm(vertices - floater, axis=1).min() > 0.1
+    # kept, its surface would lie 0.1 from its centre; the sphere's lies 0.4 from it
+    assert np.linalg.norm(vertices - floater, axis=1).min() > 0.3
     # a piece left apart is dropped by its area
     piece = vertices[faces[:4]].reshape(-1, 3) + [0, 0, 3.0]
     v2 = np.concatenate([vertices, piece])
@@ -75,8 +76,10 @@ def test_a_floater_some_views_see_through_is_carved_and_pieces_are_dropped():
 def test_a_grid_too_fine_is_refused_with_what_to_do():
     from evcap.errors import InputError
 
-    with pytest.raises(InputError, match="larger --resolution"):
+    with pytest.raises(InputError, match=r"larger voxel \(--resolution (\S+) or more\)") as e:
         Grid.around(np.zeros(3), np.ones(3), 0.001)
+    fits = float(e.value.args[0].split("--resolution ")[1].split()[0])
+    Grid.around(np.zeros(3), np.ones(3), fits)  # what it asks for is enough
 
 
 def sphere_color(points: np.ndarray) -> np.ndarray:
