@@ -1,5 +1,6 @@
 """`evcap view`: OUT/viewer.html gathered from a reconstruction folder: its mesh (exported first
-when there is none), its Gaussians' centres and its camera path, drawn by report/viewer.py."""
+when missing or out of date), its Gaussians' centres and its camera path, drawn by
+report/viewer.py."""
 
 from __future__ import annotations
 
