@@ -1,7 +1,7 @@
 """Calibration against the truth: `evcap calibrate` on the simulator's ChArUco scene (a real
 DAVIS346 calibration as its camera; threshold spread, hot pixels and noise on), with and
-without its APS frames, and on the real DAVIS346 recording (hot pixels and noise only: it shows
-no board). Prints the figures and writes results/calibration.json.
+without its APS frames, and on the real DAVIS346 recording (hot pixels, noise and the pixels'
+footprint: it shows no board). Prints the figures and writes results/calibration.json.
 
     python bench/calibration.py [--scene charuco_board] [--board SPEC] [--real PATH.aedat4]
 """
@@ -87,9 +87,12 @@ def against_truth(path: Path, frames: bool, board: Board = DEFAULT_BOARD) -> dic
 
 
 def real_recording(aedat4: Path) -> dict:
-    """Hot pixels and noise of the real DAVIS346 recording (no board in it)."""
+    """Hot pixels and noise of the real DAVIS346 recording (no board in it), and its pixels'
+    footprint from its frames' median (the camera is still)."""
     from evcap.calib.calibrate import calibrate
+    from evcap.calib.footprint import footprint
     from evcap.importers.aedat4 import import_aedat4
+    from evcap.session import Session
 
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "real.h5"
@@ -97,6 +100,8 @@ def real_recording(aedat4: Path) -> dict:
         t0 = time.perf_counter()
         cal = calibrate(path, skip=frozenset({"intrinsics"}))
         seconds = time.perf_counter() - t0
+        with Session.open(path) as s:
+            fp = footprint(np.median(np.asarray(s.frames().data, np.float64), axis=0))
     est = cal.record()
     on, off = est.thresholds()
     return {
@@ -107,6 +112,9 @@ def real_recording(aedat4: Path) -> dict:
         "real_refractory_us": est.refractory_period_us,
         "real_threshold_confident_share": float((est.threshold_confidence >= 0.5).mean()),
         "real_thresholds_on_off_mean": [float(on.mean()), float(off.mean())],
+        "real_footprint_px": fp.sigma_px,  # the sharpest tenth of its straight edges
+        "real_footprint_median_px": fp.median_px,
+        "real_footprint_edges": fp.edges,
     }
 
 

@@ -71,12 +71,20 @@ DIM = SensorProfile(  # v2e's "noisy" preset: a dim scene
 )
 HOT = _alone("hot pixels", hot_pixels={"count": 20, "rate_hz": 200.0})
 REFRACTORY = _alone("refractory", refractory=DAVIS346.effects["refractory"])
+FOOTPRINT = DAVIS346.effects["footprint"]
+# the profile as it was before its pixels had a footprint: points
+POINT_PIXELS = dataclasses.replace(
+    DAVIS346,
+    name="davis346",  # its session the one simulated before (the digest tells them apart)
+    effects={k: v for k, v in DAVIS346.effects.items() if k != "footprint"},
+)
 SPREAD = _alone("threshold spread", threshold_spread=DAVIS346.effects["threshold_spread"])
 
 # in the order they are run: what the issue asks first
 ROWS: dict[str, Row] = {
     "ideal": Row(IDEAL),
     "davis346": Row(DAVIS346),
+    "footprint 0.28 px": Row(_alone("footprint", footprint=FOOTPRINT)),
     "davis346, uncalibrated": Row(DAVIS346, "nominal"),
     "davis346, uncalibrated 0.2": Row(DAVIS346, "nominal", (0.2, 0.2)),
     "davis346, refractory bound": Row(DAVIS346, refractory_bound=True),
@@ -96,6 +104,13 @@ ROWS: dict[str, Row] = {
     ),
     "refractory 0.5 ms": Row(REFRACTORY),
     "refractory 0.5 ms, bound": Row(REFRACTORY, refractory_bound=True),
+    "refractory 0.5 ms, footprint": Row(
+        _alone(
+            "refractory footprint", refractory=REFRACTORY.effects["refractory"], footprint=FOOTPRINT
+        )
+    ),
+    "davis346 point pixels": Row(POINT_PIXELS),
+    "davis346 point pixels, bound": Row(POINT_PIXELS, refractory_bound=True),
     "bandwidth 300 Hz": Row(_alone("bandwidth", bandwidth=DAVIS346.effects["bandwidth"])),
     "hot pixels 20 at 200 Hz": Row(HOT),
     "hot pixels 20 at 200 Hz, uncalibrated": Row(HOT, "nominal"),

@@ -13,6 +13,14 @@ unless the scene lists it (sim/scene.py EFFECTS):
 - refractory: an event within period_us of the pixel's previous one is dropped (the reference
   still moves, as in ESIM);
 - bandwidth: the log radiance passes a first-order low-pass with cutoff_hz before comparison;
+- footprint: the pixel sees the image through a footprint (its photodiode's area and the lens's
+  blur) of sigma_px pixels, not at a point. The samples are a point's; under the image's motion
+  a footprint is that point's signal averaged over the time the image takes to cross it, so
+  the linear radiance passes first-order low-passes in cascade whose impulse response has the
+  footprint's spread in time, sigma_px / (the pixel's image speed, set_image_speed), and the
+  events are moved back by the cascade's mean delay. Where the motion is across an edge
+  this is the footprint; along an edge, or where a nearer surface slides over a farther one,
+  it is an approximation (the speed is the pixel's own surface's);
 - timestamp_jitter: Gaussian noise on event times; dropped: each event lost with a probability.
 """
 
@@ -20,6 +28,14 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+
+# a pixel whose image moves slower than its footprint in this time is as good as still
+MAX_FOOTPRINT_US = 10_000.0
+# low-passes in cascade that spread a point's signal as the footprint would: their impulse
+# response (a gamma) nears the footprint's Gaussian as they grow; with 4 an edge's events come
+# within half the footprint's spread in time of the Gaussian's, the early ones of a strong
+# brightening the latest (the gamma has no early tail; tests/sim/test_pixel_model.py)
+FOOTPRINT_STAGES = 4
 
 
 @numba.njit(cache=True)
@@ -38,6 +54,8 @@ def _pixel_events(
     refractory,
     tau,
     max_step,
+    fp_tau,
+    fp,
     out_t,
     out_px,
     out_p,
@@ -50,26 +68,41 @@ def _pixel_events(
         p = pixels[i]
         a, b = offsets[i], offsets[i + 1]
         c_on, c_off, drift = con[p], coff[p], leak[p] * con[p] * 1e-6  # drift per us
+        ft = fp_tau[p] if fp_tau.shape[0] else 0.0
         for k in range(a, b - 1):
             t0, t1 = times[k], times[k + 1]
             x0, x1 = values[k], values[k + 1]
             if t1 <= t0:
                 continue
-            # sub-steps: to follow the low-pass filter, and to bound the leak's drift
+            # sub-steps: to follow the low-pass filters, and to bound the leak's drift
             steps = 1
             if tau > 0:
                 steps = max(steps, int(np.ceil((t1 - t0) / max_step)))
+            if ft > 0:
+                steps = max(steps, int(np.ceil((t1 - t0) / max(ft / 10, 1.0))))
             slope = (x1 - x0) / (t1 - t0)
             for s in range(steps):
                 ta = t0 + (t1 - t0) * s / steps
                 tb = t0 + (t1 - t0) * (s + 1) / steps
+                h = tb - ta
+                xa = x0 + slope * (ta - t0)
                 xb = x0 + slope * (tb - t0)
+                if ft > 0:  # the footprint: low-passes of the linear radiance in cascade
+                    la, lb = np.exp(xa), np.exp(xb)  # each stage's input at ta and tb
+                    decay = np.exp(-h / ft)
+                    for j in range(fp.shape[0]):
+                        u = (lb - la) / h
+                        fa = fp[j, p]
+                        fb = lb - u * ft + (fa - la + u * ft) * decay
+                        fp[j, p] = fb
+                        la, lb = fa, fb
+                    xa = np.log(max(la, 1e-300))
+                    xb = np.log(max(lb, 1e-300))
                 ya = filt[p]
                 if tau > 0:  # exact first-order response to a linear input
-                    h = tb - ta
-                    xa = x0 + slope * (ta - t0)
+                    u = (xb - xa) / h
                     decay = np.exp(-h / tau)
-                    yb = xb - slope * tau + (ya - xa + slope * tau) * decay
+                    yb = xb - u * tau + (ya - xa + u * tau) * decay
                 else:
                     yb = xb
                 filt[p] = yb
@@ -95,7 +128,7 @@ def _pixel_events(
                         continue  # dropped; the reference has moved all the same
                     last_t[p] = tc
                     if n_out < capacity:
-                        out_t[n_out] = tc
+                        out_t[n_out] = tc - fp.shape[0] * ft  # the cascade's mean delay
                         out_px[n_out] = p
                         out_p[n_out] = polarity
                     n_out += 1
@@ -146,6 +179,10 @@ class PixelArray:
         self.refractory_us = float(effects.get("refractory", {}).get("period_us", 0))
         cutoff = effects.get("bandwidth", {}).get("cutoff_hz", 0.0)
         self.tau_us = 1e6 / (2 * np.pi * cutoff) if cutoff > 0 else 0.0
+        self.footprint_px = float(effects.get("footprint", {}).get("sigma_px", 0.0))
+        self.fp_tau = np.zeros(n_pixels if self.footprint_px > 0 else 0)
+        # the footprint's low-passes' states (linear radiance)
+        self.fp = np.zeros((FOOTPRINT_STAGES, len(self.fp_tau)))
         self.ref = np.zeros(n_pixels)
         self.ref_t = np.zeros(n_pixels)
         self.last_t = np.full(n_pixels, -np.inf)
@@ -156,10 +193,25 @@ class PixelArray:
         """Set every pixel's reference (and filter) to its value at time ``t_us``."""
         self.ref[:] = log_values
         self.filt[:] = log_values
+        if self.footprint_px > 0:
+            self.fp[:] = np.exp(log_values)
         self.ref_t[:] = t_us
         if self.leak.any():  # random leak phases, so that still pixels do not fire together
             self.ref -= self.rng.random(self.n) * self.con
         self.started = True
+
+    def set_image_speed(self, px_per_us: np.ndarray) -> None:
+        """Each pixel's image speed until the next call (pixels a microsecond): the footprint's
+        spread in time is sigma_px / speed, each low-pass's time constant that over
+        sqrt(FOOTPRINT_STAGES) (each adds its share of the variance), at most
+        MAX_FOOTPRINT_US."""
+        spread = self.footprint_px / np.maximum(px_per_us, 1e-12)
+        self.fp_tau[:] = np.minimum(spread / np.sqrt(FOOTPRINT_STAGES), MAX_FOOTPRINT_US)
+
+    @property
+    def max_delay_us(self) -> float:
+        """The most an event's time is moved back (the footprint's delay)."""
+        return FOOTPRINT_STAGES * MAX_FOOTPRINT_US if self.footprint_px > 0 else 0.0
 
     def events(
         self, times: np.ndarray, values: np.ndarray, offsets: np.ndarray, pixels: np.ndarray
@@ -167,7 +219,7 @@ class PixelArray:
         """(t us float, pixel, polarity) of the events of these pixels' samples (times in us;
         ``offsets`` delimit each pixel's samples)."""
         capacity = max(1024, len(times))
-        state = (self.ref, self.ref_t, self.last_t, self.filt)
+        state = (self.ref, self.ref_t, self.last_t, self.filt, self.fp)
         saved = [s.copy() for s in state]
         while True:
             out_t = np.empty(capacity)
@@ -188,6 +240,8 @@ class PixelArray:
                 self.refractory_us,
                 self.tau_us,
                 max(self.tau_us / 10, 1.0),
+                self.fp_tau,
+                self.fp,
                 out_t,
                 out_px,
                 out_p,

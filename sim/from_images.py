@@ -10,7 +10,9 @@ DIS, both ways, on the images' luminance), then for each intermediate time a in 
 pixel x takes (1 - a) * A(x - a * F_ab(x)) + a * B(x - (1 - a) * F_ba(x)): both images warped
 back along straight-line motion and blended (in linear radiance). Poses in between are
 interpolated (position linearly, rotation by slerp). The pixel model then runs on the frames as
-its samples (evcap.sim.events), so all the sensor effects apply.
+its samples (evcap.sim.events), so all the sensor effects apply but the footprint: the images
+already hold each pixel's area (rendered with a pixel filter, or scaled down by area), and the
+warped frames carry it along.
 
 Held-out views: those of a second transforms file (``held_out``), never used for events;
 otherwise every 8th image of the sequence (which is then not used for the events).
@@ -362,7 +364,8 @@ def simulate_from_images(
     if profile is not None:
         named = sensor_profile(profile)
         on, off, effects = named.threshold_on, named.threshold_off, named.effects
-    pixels = PixelArray(w * h, on, off, effects or {}, rng)
+    effects = {k: v for k, v in (effects or {}).items() if k != "footprint"}
+    pixels = PixelArray(w * h, on, off, effects, rng)
     sensor = SensorInfo("simulated", w, h, color_filter, "SIM-images", EPOCH_US)
     n_events = 0
     gt_t = [0]

@@ -82,6 +82,7 @@ EFFECTS = {
     "hot_pixels": {"count": int, "rate_hz": float},  # pixels firing ON events at rate_hz
     "refractory": {"period_us": int},  # events closer than this after one are dropped
     "bandwidth": {"cutoff_hz": float},  # first-order low-pass of the log photocurrent
+    "footprint": {"sigma_px": float},  # the pixel's area and the lens's blur (evcap.sim.events)
     "timestamp_jitter": {"sigma_us": float},  # Gaussian jitter of event times
     "dropped": {"probability": float},  # each event is lost with this probability
 }

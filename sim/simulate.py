@@ -62,6 +62,7 @@ class _Key:
     t: float
     log: np.ndarray  # [P]
     frame: SpecularFrame
+    depth: np.ndarray  # [P] z in the camera frame; 0 where no surface
 
 
 @dataclass
@@ -182,7 +183,7 @@ class Simulator:
         r.radiance[r.specular_inputs.rows] += frame.specular[r.specular_inputs.rows]
         measured = self.channels.of(r.radiance)
         log = np.log(np.maximum(measured, 0.0) + self.scene.sensor.dark_level)
-        return _Key(t_us, log, frame)
+        return _Key(t_us, log, frame, r.depth)
 
     def _shared(self, a, b, s, inputs, pixels) -> np.ndarray:
         with _timed(self.stats, "specular"):
@@ -289,7 +290,24 @@ class Simulator:
             order = np.lexsort((t, px))
             px, t, v = px[order], t[order], v[order]
             offsets = np.searchsorted(px, np.arange(n + 1))
+            if self.pixels.footprint_px > 0:
+                self.pixels.set_image_speed(self._image_speed(a, b))
             return self.pixels.events(t, v, offsets, np.arange(n))
+
+    def _image_speed(self, a: _Key, b: _Key) -> np.ndarray:
+        """[P] how fast (pixels a microsecond) what each pixel sees at ``a`` moves in the image
+        by ``b`` (the environment, seen at no distance, by the rotation alone)."""
+        Ta, Tb = self.trajectory.pose(a.t * 1e-6), self.trajectory.pose(b.t * 1e-6)
+        rays = self.camera.rays()
+        hit = a.depth > 0
+        cam_a = rays * np.where(hit, a.depth / rays[:, 2], 1.0)[:, None]
+        world = cam_a @ Ta[:3, :3].T + np.where(hit[:, None], Ta[:3, 3], 0.0)
+        cam_b = (world - np.where(hit[:, None], Tb[:3, 3], 0.0)) @ Tb[:3, :3]
+        ahead = cam_b[:, 2] > 1e-6
+        speed = np.zeros(len(rays))
+        moved = self.camera.project(cam_b[ahead]) - self.camera.project(cam_a[ahead])
+        speed[ahead] = np.linalg.norm(moved, axis=1) / max(b.t - a.t, 1e-9)
+        return speed
 
     # -- the run ---------------------------------------------------------------------------------
 
@@ -315,7 +333,8 @@ class Simulator:
                     )
                     et, epx, ep = self.pixels.degrade(et, epx, ep)
                 pending.append((et, epx, ep))
-                safe = nxt.t - 6 * jitter if nxt.t < duration_us else np.inf
+                late = 6 * jitter + self.pixels.max_delay_us  # how far back an event may go
+                safe = nxt.t - late if nxt.t < duration_us else np.inf
                 pending = self._write_events(writer, pending, safe, width)
                 self._expose(writer, exposures, key, nxt)
                 key = nxt

@@ -26,6 +26,7 @@ def test_the_davis346_profile_holds_the_datasheet_thresholds():
         "shot_noise",
         "refractory",
         "bandwidth",
+        "footprint",
     }
 
 

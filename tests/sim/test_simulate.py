@@ -221,3 +221,44 @@ def test_an_interrupted_simulation_leaves_nothing_half_made(tiny_scene, tmp_path
     simulate(load_scene(tiny_scene()), out, overwrite=True)
     with Session.open(out) as s:
         assert {"gt", "poses", "calibration"} <= set(s.groups)
+
+
+def test_image_speed_of_the_environment_and_of_the_orbited_object(tiny_scene):
+    from evcap.sim.simulate import Simulator
+
+    sim = Simulator(load_scene(tiny_scene()))
+    a, b = sim._first_key(100_000.0), sim._first_key(102_000.0)
+    speed = sim._image_speed(a, b).reshape(36, 48) * 1e6  # px/s
+    turn = np.radians(40.0) / 0.3  # the orbit turns the camera this fast (rad/s)
+    sky = a.depth.reshape(36, 48) == 0
+    assert sky[0].all()  # the top row sees the sky: it moves with the camera's turn
+    assert np.median(speed[0]) == pytest.approx(45.0 * turn, rel=0.15)
+    # the sphere's point under the image centre, 0.6 in front of the point the orbit turns
+    # about (its centre), moves as the camera's turn carries it
+    across = turn * np.cos(np.arctan2(0.6, 2.2))  # the turn about an axis across the view
+    distance = np.hypot(2.2, 0.6) - 0.6
+    assert not sky[18, 24]
+    assert np.median(speed[17:20, 23:26]) == pytest.approx(45.0 * across * 0.6 / distance, rel=0.1)
+
+
+def test_a_footprint_spreads_the_events_of_an_edge(tiny_scene, tmp_path):
+    """A point pixel fires an edge's events at once; with a footprint they spread (and the
+    events stay in time order, though moved back by the footprint's delay)."""
+
+    def bursts(effects: str) -> tuple[int, float]:
+        out = tmp_path / f"{len(effects)}.h5"
+        simulate(load_scene(tiny_scene(effects=effects)), out)
+        with Session.open(out) as s:
+            ev = s.events()
+        assert (np.diff(ev.t) >= 0).all()
+        px = ev.y.astype(np.int64) * 48 + ev.x
+        order = np.lexsort((ev.t, px))
+        same = (np.diff(px[order]) == 0) & (np.diff(ev.p[order].astype(int)) == 0)
+        gaps = np.diff(ev.t[order])[same]
+        return len(ev.t), float(np.mean(gaps < 20))
+
+    n_point, close_point = bursts("")
+    n_wide, close_wide = bursts("[sensor.effects]\nfootprint = { sigma_px = 0.3 }")
+    # about the same changes (the footprint smooths the finest texture a little), spread
+    assert n_wide == pytest.approx(n_point, rel=0.15)
+    assert close_point > 0.3 and close_wide < 0.3 * close_point
