@@ -29,7 +29,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-# a pixel whose image moves slower than its footprint in this time is as good as still
+# the footprint's low-passes' longest time constant: a pixel whose image takes longer than
+# this to cross its footprint changes too slowly for the footprint to matter
 MAX_FOOTPRINT_US = 10_000.0
 # low-passes in cascade that spread a point's signal as the footprint would: their impulse
 # response (a gamma) nears the footprint's Gaussian as they grow; with 4 an edge's events come
