@@ -59,7 +59,10 @@ def run_moving(times, values, effects, px_per_us):
     pa.start(np.array([values[0]]), times[0])
     pa.set_image_speed(np.array([px_per_us]))
     t, _, p = pa.events(
-        np.asarray(times, float), np.asarray(values, float), np.array([0, 4]), np.array([0])
+        np.asarray(times, float),
+        np.asarray(values, float),
+        np.array([0, len(times)]),
+        np.array([0]),
     )
     return t, p
 
