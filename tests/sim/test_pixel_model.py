@@ -6,10 +6,13 @@ import pytest
 from evcap.sim.events import PixelArray
 
 
-def run(times, values, effects=None, c=0.2, seed=0):
-    """One pixel's samples -> its events (t, polarity)."""
+def run(times, values, effects=None, c=0.2, seed=0, px_per_us=None):
+    """One pixel's samples -> its events (t, polarity); ``px_per_us``: how fast the pixel's
+    image moves (what a footprint reads)."""
     pa = PixelArray(1, c, c, effects or {}, np.random.default_rng(seed))
     pa.start(np.array([values[0]]), times[0])
+    if px_per_us is not None:
+        pa.set_image_speed(np.array([px_per_us]))
     t, px, p = pa.events(
         np.asarray(times, float),
         np.asarray(values, float),
@@ -53,20 +56,6 @@ def test_bandwidth_delays_a_step():
     assert len(t) == 4  # the 5th level (1.0) is only reached asymptotically
 
 
-def run_moving(times, values, effects, px_per_us):
-    """As run, the pixel's image moving at ``px_per_us`` (what the footprint reads)."""
-    pa = PixelArray(1, 0.2, 0.2, effects, np.random.default_rng(0))
-    pa.start(np.array([values[0]]), times[0])
-    pa.set_image_speed(np.array([px_per_us]))
-    t, _, p = pa.events(
-        np.asarray(times, float),
-        np.asarray(values, float),
-        np.array([0, len(times)]),
-        np.array([0]),
-    )
-    return t, p
-
-
 @pytest.mark.parametrize("contrast", [1.0, -1.0, 2.0])
 def test_the_footprint_spreads_an_edge_as_a_pixel_of_that_size_sees_it(contrast):
     from scipy.special import ndtr
@@ -75,7 +64,7 @@ def test_the_footprint_spreads_an_edge_as_a_pixel_of_that_size_sees_it(contrast)
     spread = sigma / speed
     # a point pixel's signal: the edge's step at 20 ms, resolved to 1 us
     step = [0.0, 20_000.0, 20_001.0, 60_000.0], [0.0, 0.0, contrast, contrast]
-    t, p = run_moving(*step, {"footprint": {"sigma_px": sigma}}, speed)
+    t, p = run(*step, {"footprint": {"sigma_px": sigma}}, px_per_us=speed)
     # the signal of a Gaussian footprint crossed by the edge, linear radiance
     fine = np.linspace(0.0, 60_000.0, 60_001)
     seen = 1 + (np.exp(contrast) - 1) * ndtr((fine - 20_000.0) / spread)
@@ -91,7 +80,7 @@ def test_a_footprint_keeps_events_a_point_pixel_loses_to_the_refractory_period()
     step = [0.0, 20_000.0, 20_001.0, 60_000.0], [0.0, 0.0, 2.0, 2.0]
     refractory = {"refractory": {"period_us": 500}}
     point, _ = run(*step, refractory)
-    seen, _ = run_moving(*step, {**refractory, "footprint": {"sigma_px": 0.3}}, 100e-6)
+    seen, _ = run(*step, {**refractory, "footprint": {"sigma_px": 0.3}}, px_per_us=100e-6)
     assert len(point) == 1 and len(seen) >= 6  # of 10
 
 
