@@ -55,6 +55,7 @@ class Row:
     nominal: tuple[float, float] | None = None  # the nominal thresholds (None: the sensor's)
     noise_rates: bool = False  # the calibration's noise rates in the event loss
     refractory_bound: bool = False  # crowded events' windows a lower bound (config.py)
+    noise_filter_ms: float = 0.0  # the background-activity filter's time (0: none)
     pose_noise_deg: float = 0.0
 
 
@@ -116,6 +117,7 @@ ROWS: dict[str, Row] = {
     "hot pixels 20 at 200 Hz, uncalibrated": Row(HOT, "nominal"),
     "dim light (v2e noisy)": Row(DIM),
     "dim light, noise rates": Row(DIM, noise_rates=True),
+    "dim light, noise filter 5 ms": Row(DIM, noise_filter_ms=5.0),
     "timestamp jitter 20 us": Row(_alone("jitter", timestamp_jitter={"sigma_us": 20.0})),
     "dropped 2 %": Row(_alone("dropped", dropped={"probability": 0.02})),
 }
@@ -281,6 +283,7 @@ def run_row(scene: str, name: str, args: argparse.Namespace) -> dict:
             radiance_settings={
                 "noise_rates": row.noise_rates,
                 "refractory_bound": row.refractory_bound,
+                "noise_filter_ms": row.noise_filter_ms,
             },
             refine_poses="off",
         )

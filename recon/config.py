@@ -71,6 +71,9 @@ class RadianceConfig:
     # refractory period) measures only part of its change: its C_on ON - C_off OFF is then a
     # lower bound on the change's size, in its direction, not the change itself
     refractory_bound: bool = False
+    # a background-activity filter (noise_filter.py): only the events a neighbour's supports
+    # within this many ms (0: all); for dim light, where noise is a sizeable share of the events
+    noise_filter_ms: float = 0.0
     # loss weights (method.md): L = L_event + 0.1 L_GW + 0.05 L_normal
     anchor_weight: float = 0.1
     anchor_level: float = 0.5  # g: the mean rendered brightness
@@ -302,6 +305,8 @@ def check(config: RadianceConfig) -> None:
         raise InputError('zero_events must be "target" or "bound"')
     if config.frame_interval_ms <= 0 or config.max_window_frames < 1:
         raise InputError("frame_interval_ms must be > 0 and max_window_frames >= 1")
+    if config.noise_filter_ms < 0:
+        raise InputError("noise_filter_ms must be 0 (no filter) or a positive time")
     if config.views_per_step < 2:
         raise InputError("views_per_step must be at least 2 (a window needs two views)")
     if not 0 <= config.init_on_points <= 1:

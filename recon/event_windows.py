@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from evcap.errors import InputError
+from evcap.recon.noise_filter import supported
 from evcap.recon.optics import SensorOptics
 from evcap.session import Session
 
@@ -60,10 +61,12 @@ class EventWindows:
         max_frames: int,
         device: torch.device | str = "cpu",
         refractory_us: float = 0.0,
+        noise_filter_us: float = 0.0,
     ) -> EventWindows:
         """Frames every ``interval_us`` (or coarser, to stay within ``max_frames``) over
         [t_start, t_end], with the events between them; with a ``refractory_us`` > 0, the
-        crowded events counted again in ``crowded``."""
+        crowded events counted again in ``crowded``; with a ``noise_filter_us`` > 0, only the
+        events a neighbour's supports within that time (noise_filter.py)."""
         if t_end <= t_start:
             raise InputError(f"{session.path}: no time span with both events and poses")
         span = t_end - t_start
@@ -84,7 +87,10 @@ class EventWindows:
             )
         parts, crowded_parts = [], []
         last = np.full(w * h, np.iinfo(np.int64).min // 2, np.int64)  # each pixel's last event
+        seen = last.reshape(h, w).copy()  # the same, for the noise filter
         for ev in _blocks(session, i0, i1):
+            if noise_filter_us > 0:
+                ev = ev.select(supported(ev.x, ev.y, ev.t, seen, noise_filter_us))
             pixels = ev.y.astype(np.int64) * w + ev.x
             keys = (pixels * 2 + (ev.p > 0)) * len(times)
             keys += np.searchsorted(times, ev.t, side="right") - 1

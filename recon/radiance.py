@@ -91,6 +91,7 @@ def load_training_data(session: Session, config: RadianceConfig, device: str) ->
         config.max_frames,
         device,
         optics.refractory_us if config.refractory_bound else 0.0,
+        config.noise_filter_ms * 1000,
     )
     poses = track.at(windows.frame_times)
     volume = scene_volume(poses, optics.K, optics.width, optics.height)
