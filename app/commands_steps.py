@@ -336,6 +336,14 @@ def _reconstruct_arguments(p: argparse.ArgumentParser) -> None:
         help="a window whose pixel fired within twice the calibration's refractory period "
         "bounds the change's size from below instead of giving it (the period's change is lost)",
     )
+    p.add_argument(
+        "--noise-filter",
+        type=float,
+        default=0.0,
+        metavar="MS",
+        help="leave out the events no neighbouring pixel's event came within MS ms before (a "
+        "background-activity filter, for dim light; 5 is a start; default 0: none)",
+    )
     p.add_argument("--material-iterations", type=int, metavar="N", help="stage II steps")
     for effect, what in (("visibility", "shadows"), ("indirect", "light from other surfaces")):
         p.add_argument(
@@ -374,6 +382,14 @@ def _reconstruct_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _radiance_settings(args: argparse.Namespace) -> dict:
+    """Stage I's settings the command line gives over the preset's."""
+    settings: dict = {"refractory_bound": True} if args.refractory_bound else {}
+    if args.noise_filter:
+        settings["noise_filter_ms"] = args.noise_filter
+    return settings
+
+
 def _reconstruct(args: argparse.Namespace) -> int:
     from evcap._progress import progress_bar
     from evcap.recon.reconstruct import reconstruct
@@ -392,7 +408,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
             material_iterations=args.material_iterations,
             seed=args.seed,
             zero_events=args.zero_events,
-            radiance_settings={"refractory_bound": True} if args.refractory_bound else None,
+            radiance_settings=_radiance_settings(args),
             visibility="off" if "visibility" in without else args.visibility,
             indirect="off" if "indirect" in without else args.indirect,
             ablate=tuple(ABLATION_FLAGS[w] for w in sorted(without) if w in ABLATION_FLAGS),

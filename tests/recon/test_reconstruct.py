@@ -359,12 +359,13 @@ def test_cli_writes_a_reconstruction(color_session, tmp_path):
     args = ["reconstruct", str(session), "-o", str(out), "--preset", "tiny"]
     args += ["--iterations", "5", "--resolution", "1", "--seed", "2"]
     args += ["--material-iterations", "3", "--without", "edge-tv", "--without", "anchor"]
-    args += ["--refractory-bound"]
+    args += ["--refractory-bound", "--noise-filter", "5"]
     r = subprocess.run([sys.executable, "-m", "evcap", *args], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["iterations"] == 5 and metrics["seed"] == 2
-    assert tomllib.loads((out / "config.toml").read_text())["radiance"]["refractory_bound"]
+    radiance = tomllib.loads((out / "config.toml").read_text())["radiance"]
+    assert radiance["refractory_bound"] and radiance["noise_filter_ms"] == 5
     assert not metrics["effects"]["tv"] and not metrics["effects"]["anchor"]
     assert metrics["effects"]["distill"]
     assert "render_psnr_cc" in r.stdout and "base_color_psnr_cc" in r.stdout
