@@ -52,7 +52,7 @@ TINY = {
     + ["--iterations", "5", "--scale", "0.25"],
     "robustness": ["--scenes", "{scene}", "--preset", "tiny", "--iterations", "5"]
     + ["--material-iterations", "2", "--rows", "davis346, uncalibrated"]
-    + ["davis346, bound and noise rates", "pose noise 2 deg"],
+    + ["davis346, bound and noise rates", "pose noise 2 deg", "dim light, noise filter 5 ms"],
     "recon_pareto": ["--scenes", "{session}", "--presets", "tiny", "--iterations", "5"]
     + ["--resolutions", "0.5", "--seeds", "1"],
     "record_throughput": ["--seconds", "0.05"],
