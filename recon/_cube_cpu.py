@@ -14,6 +14,8 @@ import numba
 import numpy as np
 import torch
 
+from evcap.recon._threads import follow_torch_threads
+
 
 @numba.njit(cache=True, inline="always")
 def _taps(x, y, z, size):
@@ -92,4 +94,5 @@ class _CubeLookup(torch.autograd.Function):
 def cube_lookup_cpu(faces: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
     """cube_lookup's values [..., C] of ``faces`` [6, C, S, S] in directions [..., 3] (no
     gradient reaches the directions)."""
+    follow_torch_threads()
     return _CubeLookup.apply(faces, dirs)

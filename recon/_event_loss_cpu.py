@@ -17,6 +17,7 @@ import numba
 import numpy as np
 import torch
 
+from evcap.recon._threads import follow_torch_threads
 from evcap.recon.config import ZeroEvents
 
 CHUNKS = 64
@@ -177,6 +178,7 @@ def event_loss_cpu(
     (``channel_weights`` [P, 3]) against the events counted by ``before`` [K, 2 P], less each
     window's expected noise events ``noise`` [windows, 2] (ON, OFF), the crowded ones counted
     by ``crowded`` [K, 2 P] (None: none)."""
+    follow_torch_threads()
     return _EventLoss.apply(
         torch.stack(seen),
         channel_weights,

@@ -36,6 +36,7 @@ import numba
 import numpy as np
 import torch
 
+from evcap.recon._threads import follow_torch_threads
 from evcap.recon.rasterize import Camera, Render
 
 ALPHA_MIN = 1.0 / 255.0
@@ -969,14 +970,6 @@ def _pixel_gradients(v_color, v_depth, v_alpha, v_normal, alpha, out, D, v_out, 
         v_alpha_all[p] = v_a
 
 
-def _follow_torch_threads() -> None:
-    """Run on as many threads as torch is set to use: one setting for both."""
-    n = torch.get_num_threads()
-    numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
-    if torch.get_num_threads() != n:  # starting numba's OpenMP pool reset OpenMP's count
-        torch.set_num_threads(n)
-
-
 def rasterize_cpu(
     means: torch.Tensor,
     quats: torch.Tensor,
@@ -986,7 +979,7 @@ def rasterize_cpu(
     camera: Camera,
     near: float,
 ) -> Render:
-    _follow_torch_threads()
+    follow_torch_threads()
     W, H, D = camera.width, camera.height, features.shape[1]
     view = camera_arrays(camera, near)
     arrays = [_np(x) for x in (means, quats, scales, opacities)]

@@ -15,6 +15,8 @@ import numba
 import numpy as np
 import torch
 
+from evcap.recon._threads import follow_torch_threads
+
 
 @dataclass
 class SparseRows:
@@ -59,6 +61,7 @@ class Sampler:
 
     def __call__(self, image: torch.Tensor) -> torch.Tensor:
         """[P, C] the render ``image`` [h, w, C] at the sensor's pixels."""
+        follow_torch_threads()
         return _Sample.apply(image, self)
 
 

@@ -17,6 +17,8 @@ import numba
 import numpy as np
 import torch
 
+from evcap.recon._threads import follow_torch_threads
+
 NORMAL, SPREAD, SMOOTH = range(3)  # the terms, in the order they come back
 EPS = 1e-12  # normalising (as F.normalize's eps)
 FLOOR = 1e-6  # the depth and alpha floors of depth_spread_loss, the depth's of the smoothness
@@ -315,6 +317,7 @@ def surface_terms_cpu(
     step: float,
     which: tuple[bool, bool, bool],
 ) -> torch.Tensor:
+    follow_torch_threads()
     if moment is None:
         moment = torch.zeros_like(depth)
     return SurfaceTerms.apply(normal, depth, alpha, moment, K, step, which)

@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from evcap.errors import InputError
+from evcap.recon._threads import follow_torch_threads
 from evcap.recon.noise_filter import supported
 from evcap.recon.optics import SensorOptics
 from evcap.session import Session
@@ -171,6 +172,16 @@ class EventWindows:
     def __len__(self) -> int:
         return len(self.frame_times)
 
+    def digest(self) -> str:
+        """A digest of the tables (and the crowded events'): what a saved training was fitted
+        to, checked when it goes on (the windows are counted again from the session: in
+        integers, the same on every machine)."""
+        from evcap.recon.resume import digest
+
+        crowded = self.crowded.digest() if self.crowded is not None else None
+        arrays = (self.keys, self.before, self.rows, self.threshold_on, self.threshold_off)
+        return digest(self.width, self.height, self.frame_times, *arrays, crowded)
+
     @property
     def events(self) -> int:
         """The events inside the frames."""
@@ -192,6 +203,7 @@ class EventWindows:
 
     def before_by_rows(self, frames: np.ndarray) -> torch.Tensor:
         out = torch.empty(len(frames), len(self.rows) - 1, dtype=torch.int64)
+        follow_torch_threads()
         _before_rows(
             self.keys.numpy(),
             self.before.numpy(),

@@ -17,7 +17,6 @@ from evcap.recon.gaussians import Background, Gaussians
 from evcap.recon.material import MaterialField
 from evcap.recon.radiance import RadianceField
 from evcap.recon.sh import C0
-from evcap.recon.visibility import Bounce
 from evcap.records.reconstruction_folder import ReconstructionFolder, Renders, Split
 
 
@@ -158,23 +157,7 @@ def load_material_checkpoint(
         raise InputError(f"{path}: no stage-II checkpoint; run `evcap reconstruct` (both stages)")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)["material"]
-        prefix = "gaussians."
-        gaussians = Gaussians.from_state(
-            {k.removeprefix(prefix): v for k, v in state.items() if k.startswith(prefix)}
-        )
-        bounce = None
-        if "bounce_receivers" in state:
-            bounce = Bounce(*(state[f"bounce_{k}"] for k in ("receivers", "sources", "weights")))
-        field = MaterialField(
-            gaussians,
-            Background.from_faces(state["light.faces"]),
-            state["normals"],
-            state.get("visibility"),
-            "indirect_sh" in state,
-            backend,
-            bounce,
-        )
-        field.load_state_dict(state)
+        field = MaterialField.from_state(state, backend)
     except (KeyError, RuntimeError, ValueError) as e:
         raise InputError(f"{path}: not a readable stage-II checkpoint ({e})") from e
     return field.to(device)

@@ -23,6 +23,7 @@ import torch.nn.functional as F
 
 from evcap.edge_maps import edge_map
 from evcap.errors import InputError
+from evcap.recon._threads import torch_on_one_thread
 from evcap.recon.config import Ablation, Backend, EffectMode, MaterialConfig, RadianceConfig
 from evcap.recon.gaussians import Background, Gaussians
 from evcap.recon.losses import anchor_loss, checked_loss
@@ -36,7 +37,7 @@ from evcap.recon.radiance import (
     windows_event_loss,
 )
 from evcap.recon.rasterize import Camera, Render, gaussian_normals, rasterize
-from evcap.recon.resume import Steps, random_states, restore_random_states
+from evcap.recon.resume import Steps, digest, random_states, restore_random_states
 from evcap.recon.sh import eval_sh
 from evcap.recon.shading import (
     DIFFUSE_DIRECTIONS,
@@ -120,6 +121,29 @@ class MaterialField(torch.nn.Module):
         self.backend = backend
         # base_variation at the start under each choice of effects, where "auto" chose them
         self.start_variation: dict[str, float] = {}
+
+    @classmethod
+    def from_state(cls, state: dict[str, torch.Tensor], backend: Backend = "cpu") -> MaterialField:
+        """The field whose state_dict ``state`` is (a checkpoint's, a training state's): its
+        visibility and light bounces as they were baked, nothing baked again."""
+        prefix = "gaussians."
+        gaussians = Gaussians.from_state(
+            {k.removeprefix(prefix): v for k, v in state.items() if k.startswith(prefix)}
+        )
+        bounce = None
+        if "bounce_receivers" in state:
+            bounce = Bounce(*(state[f"bounce_{k}"] for k in ("receivers", "sources", "weights")))
+        field = cls(
+            gaussians,
+            Background.from_faces(state["light.faces"]),
+            state["normals"],
+            state.get("visibility"),
+            "indirect_sh" in state,
+            backend,
+            bounce,
+        )
+        field.load_state_dict(state)
+        return field
 
     @property
     def effects(self) -> dict[str, bool]:
@@ -381,6 +405,40 @@ def edge_maps(
     return out
 
 
+def start_stage_two(
+    radiance: RadianceField,
+    data: TrainingData,
+    session: Session,
+    config: MaterialConfig,
+    device: str,
+) -> tuple[MaterialField, dict]:
+    """Stage II's field at its start (new_material_field: its normals, visibility, light
+    bounces and effects) and what else it derived, as its training state keeps it: the
+    training frames, the TV's weights exp(-beta M_edge) of each (kept instead of the edge
+    maps), stage I's render of each (the distillation's targets) and a digest of stage I's
+    Gaussians and trajectory. torch on one thread throughout (recon/_threads.py)."""
+    with torch_on_one_thread():
+        field = new_material_field(radiance, data, config)
+        frames = edge_frames(data, config.edge_frames)
+        edges = edge_maps(session, data, frames, config.edge_slice_ms, device)
+        with torch.no_grad():
+            views = data.viewmats()
+            targets = [radiance.render_view(views[f], data.grid).color for f in frames]
+        tv_weights = [torch.exp(-config.edge_beta * edges[int(f)]) for f in frames]
+    return field, {
+        "frames": torch.from_numpy(frames),
+        "tv_weights": torch.stack(tv_weights),
+        "targets": torch.stack(targets),
+        "stage_one": stage_one_digest(radiance, data),
+    }
+
+
+def stage_one_digest(radiance: RadianceField, data: TrainingData) -> str:
+    """A digest of what stage II starts from: stage I's Gaussians and the trajectory."""
+    g = radiance.gaussians.state_dict()
+    return digest(*(g[k] for k in sorted(g)), data.track.t, data.track.T_world_cam)
+
+
 def train_material(
     radiance: RadianceField,
     data: TrainingData,
@@ -400,31 +458,34 @@ def train_material(
 ) -> MaterialFit:
     """Fit stage II from a stage-I field; Ctrl-C ends it at the end of the step with what was
     learnt so far. ``ablate`` switches terms off: "anchor", "tv", "distill". ``resume`` and
-    ``save_state`` as for train_radiance."""
+    ``save_state`` as for train_radiance: what stage II derived at its start is taken from the
+    state, nothing is baked or rendered again."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed + 2)
     radiance.requires_grad_(False)
-    if resume is not None:  # the effects the saved state was started with
-        saved = resume["material"]
-        config = dataclasses.replace(
-            config,
-            visibility="on" if "visibility" in saved else "off",
-            indirect="on" if "indirect_sh" in saved else "off",
-        )
-    field = new_material_field(radiance, data, config)
-    if resume is not None:
+    if resume is None:
+        field, start = start_stage_two(radiance, data, session, config, device)
+        derived = data.derived()
+    else:
+        start = resume["start"]
+        derived = resume["data"]  # what ``data`` was loaded with (load_training_data)
+        if start["stage_one"] != stage_one_digest(radiance, data):
+            raise InputError(
+                "the saved stage-II state was started from another stage I than the one "
+                "saved beside it (its Gaussians or refined poses differ): pass --force to "
+                "start stage II over"
+            )
         try:
-            field.load_state_dict(resume["material"])
-        except RuntimeError as e:  # saved by an evcap whose stage II held other arrays
+            field = MaterialField.from_state(resume["material"], radiance.backend).to(device)
+        except (KeyError, RuntimeError) as e:  # saved by an evcap whose stage II held others
             found = " ".join(str(e).split())
             raise InputError(
                 f"the saved stage-II state does not fit this version of evcap ({found}); "
                 "pass --force to start stage II over"
             ) from e
-    frames_all = edge_frames(data, config.edge_frames)
-    # the TV's weights exp(-beta M_edge) of each training view, kept instead of the maps
-    edges = edge_maps(session, data, frames_all, config.edge_slice_ms, device)
-    weights = {f: torch.exp(-config.edge_beta * edges.pop(f)) for f in list(edges)}
+    frames_all = start["frames"].numpy()
+    weights = {int(f): w.to(device) for f, w in zip(frames_all, start["tv_weights"], strict=True)}
+    targets = {int(f): x.to(device) for f, x in zip(frames_all, start["targets"], strict=True)}
     groups = [
         {"params": [field.base_logits], "lr": config.lr_base_color},
         {"params": [field.roughness_logits], "lr": config.lr_roughness},
@@ -434,15 +495,6 @@ def train_material(
     if field.indirect_sh is not None:
         groups.append({"params": [field.indirect_sh], "lr": config.lr_indirect})
     optimizer = torch.optim.Adam(groups, eps=1e-15)
-    targets: dict[int, torch.Tensor] = {}
-
-    @torch.no_grad()
-    def distill_target(frame: int) -> torch.Tensor:
-        """Stage I's render of the frame (rendered once)."""
-        if frame not in targets:
-            targets[frame] = radiance.render_view(data.viewmats()[frame], data.grid).color
-        return targets[frame]
-
     stride = max(len(data.windows) / len(frames_all), 1.0)
     # windows as long as stage I's, counted in stage II's coarser frames
     spacing = dataclasses.replace(
@@ -461,6 +513,8 @@ def train_material(
         checked_loss("stage II", steps.step, None, field.parameters())  # none saved broken
         return {
             "step": steps.step,
+            "data": derived,
+            "start": start,
             "material": field.state_dict(),
             "optimizer": optimizer.state_dict(),
             "random": random_states(rng),
@@ -475,7 +529,7 @@ def train_material(
             pick = draw_frames(rng, len(frames_all), spacing)
             frames = frames_all[pick]
             total, terms = _losses(
-                field, data, stage1, config, frames, distill_target, weights, ablate, timer
+                field, data, stage1, config, frames, targets, weights, ablate, timer
             )
             with timer("backward"):
                 total.backward()
@@ -501,14 +555,14 @@ def _losses(
     stage1: RadianceConfig,
     config: MaterialConfig,
     frames: np.ndarray,
-    distill_target: Callable[[int], torch.Tensor],
+    distill_targets: dict[int, torch.Tensor],
     edge_weights: dict[int, torch.Tensor],
     ablate: frozenset[Ablation],
     timer: StepTimer = UNTIMED,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The loss of the renders at ``frames``, L = L_event + 1.0 L_rad + 0.1 L_GW + 0.05 L_TV
     without the terms ``ablate`` leaves out; (the total, its terms as tensors, to be read when
-    logged). ``distill_target(frame)``: stage I's render of the frame; ``edge_weights``:
+    logged). ``distill_targets``: stage I's render of each frame; ``edge_weights``:
     exp(-beta M_edge) of each frame."""
     with timer("render"):
         renders = [field.render_view(data.viewmats()[int(f)], data.grid) for f in frames]
@@ -521,7 +575,7 @@ def _losses(
         if "distill" not in ablate:
             dl = 0
             for f, r in zip(frames, renders, strict=True):
-                dl = dl + (r.color[..., :3] - distill_target(int(f))).abs().mean()
+                dl = dl + (r.color[..., :3] - distill_targets[int(f)]).abs().mean()
             dl = dl / len(renders)
             total = total + config.distill_weight * dl
             terms["distill"] = dl.detach()

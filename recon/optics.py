@@ -116,6 +116,18 @@ class RenderGrid:
             x, y = (xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1]
             self.rays = F.normalize(torch.stack([x, y, torch.ones_like(xs)], -1), dim=-1)
 
+    def state(self) -> dict:
+        """The grid as saved with a training's state (on the CPU)."""
+        arrays = {"K": self.K, "grid": self.grid, "rays": self.rays}
+        return {"width": self.width, "height": self.height} | {
+            k: v.detach().cpu() for k, v in arrays.items()
+        }
+
+    @classmethod
+    def from_state(cls, state: dict, device: torch.device | str = "cpu") -> RenderGrid:
+        arrays = {k: state[k].to(device) for k in ("K", "grid", "rays")}
+        return cls(width=int(state["width"]), height=int(state["height"]), **arrays)
+
     def directions(self, viewmat: torch.Tensor) -> torch.Tensor:
         """[h, w, 3] unit world directions of the rays through the render's pixel centres, for
         a camera at ``viewmat`` [4, 4] (world to camera)."""

@@ -56,7 +56,8 @@ class PoseCorrections(torch.nn.Module):
         j = torch.from_numpy(i)
 
         def lerp(p: torch.Tensor) -> torch.Tensor:
-            return p[j] * (1 - s) + p[j + 1] * s
+            # index_select: p[j]'s gradient would add the repeats in the threads' order
+            return p.index_select(0, j) * (1 - s) + p.index_select(0, j + 1) * s
 
         return lerp(self.rotation), self.extent * lerp(self.shift)
 

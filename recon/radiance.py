@@ -20,6 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from evcap.errors import InputError
+from evcap.recon._threads import torch_on_one_thread
 from evcap.recon.config import Backend, RadianceConfig
 from evcap.recon.densify import Densifier
 from evcap.recon.event_windows import EventWindows
@@ -67,8 +68,45 @@ class TrainingData:
             self._viewmats = (self.track, torch.as_tensor(T, dtype=torch.float32, device=device))
         return self._viewmats[1]
 
+    def derived(self) -> dict:
+        """What was derived from the session beside its events' windows (the render grids, the
+        scene's volume) as a training saves it, and the windows' digest."""
+        coarse = self.coarse_grid.state() if self.coarse_grid is not None else None
+        return {
+            "grid": self.grid.state(),
+            "coarse_grid": coarse,
+            "volume": self.volume.state(),
+            "windows": self.windows.digest(),
+        }
 
-def load_training_data(session: Session, config: RadianceConfig, device: str) -> TrainingData:
+
+def load_training_data(
+    session: Session, config: RadianceConfig, device: str, derived: dict | None = None
+) -> TrainingData:
+    """What stage I takes from the session. ``derived``: what a saved training derived
+    (TrainingData.derived()'s), to go on with instead of deriving it again; InputError when
+    the events are now counted otherwise."""
+    with torch_on_one_thread():  # see recon/_threads.py
+        data = _training_data(session, config, device, derived is None)
+    if derived is not None:
+        if derived["windows"] != data.windows.digest():
+            raise InputError(
+                "the session's events, as the reconstruction counts them, are not those the "
+                "interrupted training was fitted to (another version of evcap counted them): "
+                "pass --force to start over"
+            )
+        data.grid = RenderGrid.from_state(derived["grid"], device)
+        coarse = derived["coarse_grid"]
+        data.coarse_grid = RenderGrid.from_state(coarse, device) if coarse is not None else None
+        data.volume = SceneVolume.from_state(derived["volume"])
+    return data
+
+
+def _training_data(
+    session: Session, config: RadianceConfig, device: str, geometry: bool
+) -> TrainingData:
+    """The events' windows and the sensor's optics; with ``geometry``, the render grids and
+    the scene's volume too (else left None, for the caller to give)."""
     optics = SensorOptics.from_session(session)
     if config.refractory_bound and optics.refractory_us <= 0:
         raise InputError(
@@ -93,12 +131,15 @@ def load_training_data(session: Session, config: RadianceConfig, device: str) ->
         optics.refractory_us if config.refractory_bound else 0.0,
         config.noise_filter_ms * 1000,
     )
-    poses = track.at(windows.frame_times)
-    volume = scene_volume(poses, optics.K, optics.width, optics.height)
     weights = CHANNEL_WEIGHTS[torch.from_numpy(optics.channels().astype(np.int64))]
     mask = torch.from_numpy(~optics.hot_pixels.ravel())
-    grid = render_grid(optics, config.resolution, device)
-    coarse = render_grid(optics, config.coarse_resolution, device) if config.coarse_until else None
+    volume, grid, coarse = None, None, None
+    if geometry:
+        poses = track.at(windows.frame_times)
+        volume = scene_volume(poses, optics.K, optics.width, optics.height)
+        grid = render_grid(optics, config.resolution, device)
+        if config.coarse_until:
+            coarse = render_grid(optics, config.coarse_resolution, device)
     return TrainingData(
         optics, track, windows, grid, coarse, weights.to(device), mask.to(device), volume
     )
@@ -193,6 +234,14 @@ class Fit:
 def new_field(
     data: TrainingData, config: RadianceConfig, seed: int, device: str, backend: Backend
 ) -> RadianceField:
+    """Stage I's first Gaussians (torch on one thread: recon/_threads.py)."""
+    with torch_on_one_thread():
+        return _new_field(data, config, seed, device, backend)
+
+
+def _new_field(
+    data: TrainingData, config: RadianceConfig, seed: int, device: str, backend: Backend
+) -> RadianceField:
     rng = np.random.default_rng(seed)
     poses = data.track.at(data.windows.frame_times)
     o = data.optics
@@ -246,13 +295,16 @@ def train_radiance(
     counted in the training's seconds) and what it returns goes into the fit's history with
     step and seconds: the accuracy-versus-time curve. ``save_state`` is given the training's
     state every ``save_every_s`` seconds and when it is interrupted; ``resume`` (such a state)
-    goes on from its step as if it had never stopped. The loss and the parameters are checked
+    goes on from its step as if it had never stopped (``data`` loaded with the state's
+    ``data``: load_training_data's ``derived``). The loss and the parameters are checked
     for NaN every CHECK_EVERY steps (each check makes a GPU wait for the host); ``timer``
     measures the parts of each step (bench/steps.py)."""
     torch.manual_seed(seed)
     if resume is None:
         field = new_field(data, config, seed, device, backend)
+        derived = data.derived()  # saved with every state
     else:
+        derived = resume["data"]
         gaussians = Gaussians.from_state(resume["gaussians"])
         background = Background.from_faces(resume["background"])
         field = RadianceField(gaussians, background, backend).to(device)
@@ -286,6 +338,7 @@ def train_radiance(
         return {
             **poses,
             "step": steps.step,
+            "data": derived,
             "gaussians": field.gaussians.state_dict(),
             "background": field.background.faces.detach(),
             "optimizer": optimizer.state_dict(),

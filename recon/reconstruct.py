@@ -195,11 +195,15 @@ def reconstruct(
             "material": cfg.to_dict(mconfig),
             "ablate": sorted(ablate),
         }
-        states = _saved_states(out, runs, settings, resume, overwrite)
+        states = _saved_states(out, runs, settings, resume, overwrite, say)
         if fits_radiance and states["radiance"] is None and states["material"] is not None:
             field, _ = load_checkpoint(out.checkpoint("radiance"), device, backend)
-        data = load_training_data(session, config, device)
-        if not fits_radiance and out.poses.exists():  # stage I refined them
+        # stage I is not run again for stage II alone, nor to go on with an interrupted stage II
+        skip = not fits_radiance or states["material"] is not None
+        going_on = states["radiance"] or states["material"]  # at most one of them
+        # what the stage going on derived from the session at its start, as its state kept it
+        data = load_training_data(session, config, device, going_on and going_on["data"])
+        if skip and out.poses.exists():  # stage II goes on the path stage I refined
             data.track = Poses.read_file(out.poses)
         gt = GroundTruth.read(session) if GroundTruth.present(session) else None
         truth = gt.held_out_views() if gt is not None else TruthViews(np.zeros((0, 4, 4)))
@@ -213,8 +217,6 @@ def reconstruct(
 
         poses = poses_of(data.track)
         out.root.mkdir(parents=True, exist_ok=True)
-        # stage I is not run again for stage II alone, nor to go on with an interrupted stage II
-        skip = not fits_radiance or states["material"] is not None
         resumed = skip or states["radiance"] is not None
         before = out.previous_result() if resumed else ReconstructionResult()
         result = before if skip else ReconstructionResult()
@@ -341,19 +343,24 @@ def _saved_states(
     settings: dict,
     resume: bool,
     overwrite: bool,
+    say: Callable[[str], None],
 ) -> dict[Training, dict | None]:
     """The training states to go on from ({"radiance": ..., "material": ...}, None where a
-    stage starts afresh); refuses to replace what OUT holds unless ``overwrite``."""
+    stage starts afresh); refuses to replace what OUT holds unless ``overwrite``, and says
+    why a saved state is not gone on from."""
     states: dict[Training, dict | None] = {"radiance": None, "material": None}
-    saved = [n for n in runs if out.training_state(n).exists()]
-    for name in saved if resume else ():
-        states[name] = resume_.load_state(out.training_state(name), settings[name])
-        if states[name] is None and not overwrite:
+    for name in runs if resume else ():
+        state = resume_.load_state(out.training_state(name))
+        why = resume_.misfit(state, settings[name]) if state is not None else ""
+        states[name] = None if why else state
+        stage = "stage I" if name == "radiance" else "stage II"
+        if why and not overwrite:
             raise InputError(
-                f"{out} holds a reconstruction interrupted in stage "
-                f"{'I' if name == 'radiance' else 'II'} with another session or other settings: "
-                "run the command it was started with to go on, or pass --force to start over"
+                f"{out} holds a reconstruction interrupted in {stage} that cannot be gone on "
+                f"with: {why}; {resume_.remedy(state)}"
             )
+        if why:
+            say(f"{stage}: starting over, the state it saved cannot be gone on with: {why}")
     if states["radiance"] is not None:
         states["material"] = None  # stage II starts afresh after it
     nothing_saved = all(v is None for v in states.values())

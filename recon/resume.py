@@ -1,11 +1,17 @@
 """Going on with an interrupted training: Ctrl-C stops a stage at the end of its current step,
 and what it needs to go on (parameters, the optimiser's moments, the random generators' states,
-its logs) is saved beside the reconstruction's checkpoint, with the settings and the session it
-was started with; the same command then continues from that step."""
+its logs, and everything it derived at its start) is saved beside the reconstruction's
+checkpoint, with the settings and the session it was started with; the same command then
+continues from that step. What a stage derived at its start (the render grids, the scene's
+volume, stage II's visibility, light bounces, normals, edge maps and distillation targets) is
+taken from the state, never built again: built again on another machine, or with another number
+of threads, a count or a choice made on a float could come out otherwise.
+"""
 
 from __future__ import annotations
 
 import hashlib
+import pickle
 import signal
 import threading
 from collections.abc import Callable, Iterator
@@ -15,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from evcap import __version__
 from evcap.atomic_write import atomic_path
 from evcap.errors import InputError
 from evcap.records import Calibration, Poses
@@ -43,11 +50,28 @@ def stop_after_step() -> Iterator[Callable[[], bool]]:
         signal.signal(signal.SIGINT, previous if previous is not None else signal.SIG_DFL)
 
 
+# the layout of a saved training state: raised whenever what a state holds changes (2: what the
+# stages derived at their start kept in it)
+STATE_FORMAT = 2
+
+
+def digest(*parts: np.ndarray | torch.Tensor | object) -> str:
+    """A digest of arrays (their dtype, shape and bytes) and other values (their repr)."""
+    h = hashlib.sha1()
+    for part in parts:
+        if isinstance(part, torch.Tensor):
+            part = part.detach().cpu().numpy()
+        if isinstance(part, np.ndarray):
+            h.update(repr((part.dtype.str, part.shape)).encode())
+            h.update(np.ascontiguousarray(part).tobytes())
+        else:
+            h.update(repr(part).encode())
+    return h.hexdigest()
+
+
 def session_fingerprint(session: Session) -> str:
     """What a training depends on in the session: its events' count and span, the poses and
     the calibration (a digest)."""
-    digest = hashlib.sha1()
-    digest.update(repr((session.n_events, session.time_range())).encode())
     arrays: list[np.ndarray | None] = []
     if Poses.present(session):
         poses = Poses.read(session)
@@ -55,30 +79,73 @@ def session_fingerprint(session: Session) -> str:
     if Calibration.present(session):
         c = Calibration.read(session)
         arrays += [c.K, c.dist, c.threshold_on, c.threshold_off, c.hot_pixels]
-    for a in arrays:
-        if a is not None:
-            digest.update(np.ascontiguousarray(a).tobytes())
-    return digest.hexdigest()
+    kept = [a for a in arrays if a is not None]
+    return digest((session.n_events, session.time_range()), *kept)
 
 
 def save_state(path: Path, state: dict, settings: dict) -> None:
     """Write a training state; a crash mid-write leaves the previous one."""
+    stamp = {"settings": settings, "format": STATE_FORMAT, "evcap": __version__}
     with atomic_path(path) as partial:
-        torch.save({**state, "settings": settings}, partial)
+        torch.save({**state, **stamp}, partial)
 
 
-def load_state(path: Path, settings: dict) -> dict | None:
-    """The training state saved at ``path`` when it was started with these ``settings``;
-    None when there is none, or it was started with others."""
+def load_state(path: Path) -> dict | None:
+    """The training state saved at ``path``; None when there is none."""
     if not path.exists():
         return None
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except (RuntimeError, ValueError, EOFError, OSError) as e:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except (RuntimeError, ValueError, EOFError, OSError, pickle.UnpicklingError) as e:
         raise InputError(
             f"{path}: the saved training state cannot be read ({e}); pass --force to start over"
         ) from e
-    return state if state.get("settings") == settings else None
+
+
+def misfit(state: dict, settings: dict) -> str:
+    """Why a saved ``state`` cannot be gone on from with these ``settings``: another version of
+    evcap saved it, it was started on another session, or with other settings (named, with
+    their values then and now); "" when it can."""
+    if state.get("format") != STATE_FORMAT:
+        saved_by = state.get("evcap", "an evcap before 0.1.0")
+        return (
+            f"another version of evcap saved it ({saved_by}, state format "
+            f"{state.get('format', 1)}; this evcap {__version__} goes on from format "
+            f"{STATE_FORMAT})"
+        )
+    then = _flat(state.get("settings", {}))
+    now = _flat(settings)
+    if then.get("session") != now.get("session"):
+        return (
+            "it was started on another session (or this one's events, poses or calibration "
+            "changed since)"
+        )
+    changed = [
+        f"{name} {then.get(name, '(none)')!r} (now {now.get(name, '(none)')!r})"
+        for name in sorted(set(then) | set(now))
+        if then.get(name) != now.get(name)
+    ]
+    return f"it was started with other settings: {', '.join(changed)}" if changed else ""
+
+
+def remedy(state: dict) -> str:
+    """What to do with a saved ``state`` that does not fit (misfit)."""
+    if state.get("format") != STATE_FORMAT:
+        return "pass --force to start over (or go on with the evcap that saved it)"
+    return "run the command it was started with to go on, or pass --force to start over"
+
+
+def _flat(settings: dict) -> dict:
+    """Settings as one level: stage I's config fields by their names, stage II's after "stage
+    II's", then the seed, the session and the ablations."""
+    out = {}
+    for key, value in settings.items():
+        if isinstance(value, dict):
+            prefix = "stage II's " if key == "material" else ""
+            out.update({prefix + k: v for k, v in value.items()})
+        else:
+            out[key] = value
+    return out
 
 
 def random_states(rng: np.random.Generator) -> dict:

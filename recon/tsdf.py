@@ -18,6 +18,7 @@ import numba
 import numpy as np
 
 from evcap.errors import InputError
+from evcap.recon._threads import follow_torch_threads
 
 MAX_VOXELS = 320**3  # float32 value and weight: 260 MB; beyond it, ask for a coarser grid
 
@@ -60,6 +61,7 @@ class Tsdf:
         # voxel (i, j, k) in the camera: base + i * step_i + j * step_j + k * step_k
         base = (self.grid.origin - t) @ R
         steps = self.grid.voxel * R  # rows: the world's axes in the camera
+        follow_torch_threads()
         _integrate(
             self.value,
             self.weight,

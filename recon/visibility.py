@@ -56,7 +56,10 @@ class Bounce:
     def irradiance(self, radiance: torch.Tensor, n: int) -> torch.Tensor:
         """[n, 3] irradiance from the blocking surfaces, given their radiance [2n, 3]."""
         out = radiance.new_zeros(n, radiance.shape[1])
-        return out.index_add(0, self.receivers, self.weights[:, None] * radiance[self.sources])
+        # index_select, not radiance[sources]: the indexing's gradient adds the repeated
+        # sources' parts in whatever order the threads come (not the same bits twice)
+        sent = radiance.index_select(0, self.sources)
+        return out.index_add(0, self.receivers, self.weights[:, None] * sent)
 
 
 @dataclass

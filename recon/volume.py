@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 
 @dataclass
@@ -22,6 +23,26 @@ class SceneVolume:
     converging: bool
     near: float  # depth range of the rays when not converging
     far: float
+
+    def state(self) -> dict:
+        """The volume as saved with a training's state."""
+        return {
+            "center": torch.from_numpy(np.asarray(self.center, np.float64)),
+            "radius": float(self.radius),
+            "converging": bool(self.converging),
+            "near": float(self.near),
+            "far": float(self.far),
+        }
+
+    @classmethod
+    def from_state(cls, state: dict) -> SceneVolume:
+        return cls(
+            state["center"].numpy(),
+            state["radius"],
+            state["converging"],
+            state["near"],
+            state["far"],
+        )
 
 
 def scene_volume(T_world_cam: np.ndarray, K: np.ndarray, width: int, height: int) -> SceneVolume:

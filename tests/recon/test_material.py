@@ -285,14 +285,14 @@ def test_stage_two_losses_leave_out_the_ablated_terms(stage_one):
     field = material.new_material_field(radiance, data, mconfig)
     frames = np.array([0, 3, 9])
     weights = {int(f): torch.ones(data.grid.height, data.grid.width) for f in frames}
-
-    @torch.no_grad()
-    def target(frame: int) -> torch.Tensor:
-        return radiance.render_view(data.viewmats()[frame], data.grid).color
+    with torch.no_grad():
+        targets = {
+            int(f): radiance.render_view(data.viewmats()[f], data.grid).color for f in frames
+        }
 
     def losses(ablate: frozenset) -> tuple[float, dict[str, float]]:
         total, terms = material._losses(
-            field, data, config, mconfig, frames, target, weights, ablate
+            field, data, config, mconfig, frames, targets, weights, ablate
         )
         return total.item(), {k: float(v) for k, v in terms.items()}
 

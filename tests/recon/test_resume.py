@@ -111,14 +111,18 @@ def test_a_stage_two_state_that_does_not_fit_is_refused_by_name(session, uninter
 
 def test_other_settings_are_refused_or_started_over(session, tmp_path):
     reconstruct(session, tmp_path, **RUN, stage="radiance", progress=interrupt_at(20, "radiance"))
-    with pytest.raises(InputError, match="interrupted in stage I with another session or other"):
+    with pytest.raises(InputError, match="stage I .* other settings: seed 0 [(]now 1[)]"):
         reconstruct(session, tmp_path, **RUN, stage="radiance", seed=1)
     assert ReconstructionFolder(tmp_path).training_state("radiance").exists()  # the refusal kept it
     said = []
     result = reconstruct(
         session, tmp_path, **RUN, stage="radiance", seed=1, overwrite=True, say=said.append
     )
-    assert not said and result.iterations == 150 and not result.interrupted
+    assert said == [
+        "stage I: starting over, the state it saved cannot be gone on with: it was started "
+        "with other settings: seed 0 (now 1)"
+    ]
+    assert result.iterations == 150 and not result.interrupted
 
 
 def test_a_step_cut_in_two_is_not_saved(session, tmp_path, monkeypatch):

@@ -1,0 +1,190 @@
+"""Going on with an interrupted stage on another number of threads (as on another machine):
+what the stage derived at its start comes from its saved state, never built again, and what it
+derives is the same on any number of threads."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from contextlib import contextmanager
+
+import numba
+import pytest
+import torch
+
+from evcap.recon import config as cfg
+from evcap.recon import material, radiance
+from evcap.recon.export import load_checkpoint
+from evcap.recon.reconstruct import reconstruct
+from evcap.recon.resume import digest
+from evcap.records import Poses
+from evcap.session import Session
+from evcap.sim.scene import load_scene
+from evcap.sim.simulate import simulate
+
+# the poses refined: stage II goes on the path stage I refined (OUT/poses.h5)
+RUN = {"preset": "tiny", "material_iterations": 12, "refine_poses": "on"}
+# what each stage builds at its start: going on, it must take all of it from its state
+BUILDERS = {
+    "radiance": [(radiance, "new_field"), (radiance, "scene_volume"), (radiance, "render_grid")],
+    "material": [
+        (material, "start_stage_two"),
+        (material, "new_material_field"),
+        (material, "bake_occlusion"),
+        (material, "plane_normals"),
+        (material, "edge_maps"),
+    ],
+}
+
+
+@contextmanager
+def threads(count: int, kernels_parallel: bool = True):
+    """torch on ``count`` threads, the compiled kernels' parallel loops on (as many threads)
+    or off (one thread)."""
+    before, limit = torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS
+    torch.set_num_threads(count)
+    if not kernels_parallel:
+        numba.config.NUMBA_NUM_THREADS = 1  # follow_torch_threads keeps within it
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+        numba.config.NUMBA_NUM_THREADS = limit
+
+
+def interrupt_at(step: int, stage: str):
+    def progress(done: int, total: int, status: str = "") -> None:
+        if done == step and status.startswith("material") == (stage == "material"):
+            raise KeyboardInterrupt
+
+    return progress
+
+
+def saved(out, name: str) -> dict:
+    return torch.load(out / "checkpoint" / f"{name}.pt", weights_only=True)
+
+
+@pytest.fixture(scope="module")
+def session(tiny_scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("session") / "s.h5"
+    simulate(load_scene(tiny_scene()), out)
+    return out
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(session, tmp_path_factory):
+    out = tmp_path_factory.mktemp("whole")
+    with threads(2):
+        reconstruct(session, out, **RUN)
+    return out
+
+
+@pytest.mark.parametrize(
+    "stage, before, after",
+    [
+        ("radiance", (2, True), (1, True)),
+        ("material", (1, True), (2, False)),
+    ],
+)
+def test_a_stage_goes_on_on_other_threads_from_what_it_saved(
+    session, uninterrupted, tmp_path, monkeypatch, stage, before, after
+):
+    """Interrupted on some threads, gone on with on others, with every builder of the
+    stage's start made to fail: it takes what it derived from its state, and ends bit for bit
+    where the run that never stopped ended."""
+    at = {"radiance": 40, "material": 5}[stage]
+    with threads(*before):
+        first = reconstruct(session, tmp_path, **RUN, progress=interrupt_at(at, stage))
+    assert first.interrupted
+    for module, name in BUILDERS[stage]:
+
+        def built_again(*args, name=name, **kwargs):
+            raise AssertionError(f"{name} ran again: the saved state has what it builds")
+
+        monkeypatch.setattr(module, name, built_again)
+    said = []
+    with threads(*after):
+        result = reconstruct(session, tmp_path, **RUN, say=said.append)
+    which = "I" if stage == "radiance" else "II"
+    assert said == [s for s in said if s.startswith(f"stage {which}: going on from step {at}")]
+    assert said and not result.interrupted
+    for name in ("radiance", "material"):
+        whole, resumed = saved(uninterrupted, name), saved(tmp_path, name)
+        key = "gaussians" if name == "radiance" else "material"
+        assert whole[key].keys() == resumed[key].keys()
+        for k, value in whole[key].items():
+            assert torch.equal(resumed[key][k], value), f"{name} {k}"
+    assert timeless(tmp_path / "metrics.json") == timeless(uninterrupted / "metrics.json")
+
+
+def timeless(path) -> dict:
+    """metrics.json without the times it took."""
+
+    def drop(x):
+        if isinstance(x, dict):
+            return {k: drop(v) for k, v in x.items() if "seconds" not in k}
+        return [drop(v) for v in x] if isinstance(x, list) else x
+
+    return drop(json.loads(path.read_text()))
+
+
+def big_field(out, copies: int) -> radiance.RadianceField:
+    """The stage-I field of ``out``, each Gaussian ``copies`` times, moved a little: enough
+    Gaussians for torch to share its operations among threads."""
+    field, _ = load_checkpoint(out / "checkpoint" / "radiance.pt")
+    g = field.gaussians
+    generator = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for name in ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest"):
+            p = getattr(g, name)
+            p.data = p.data.repeat(copies, *([1] * (p.dim() - 1)))
+        g.means.data += 0.01 * torch.randn(g.means.shape, generator=generator)
+    return field
+
+
+def test_what_the_stages_derive_at_their_start_is_the_same_on_any_threads(session, uninterrupted):
+    """Stage I's data and first Gaussians, stage II's start (normals from planes, visibility,
+    light bounces, the effects chosen, edge maps, distillation targets) over 40,000
+    Gaussians, on one and two threads, the compiled kernels' loops parallel or not: the same
+    bits (torch alone gives other values on two threads there; recon/_threads.py)."""
+    field = big_field(uninterrupted, 40_000 // 1500 + 1)
+    assert len(field.gaussians) > 40_000
+    stage1 = cfg.preset("tiny", init_gaussians=40_000)
+    mconfig = cfg.material_preset("tiny", visibility="auto", indirect="auto", edge_frames=6)
+    found = []
+    for count, parallel in ((1, True), (2, True), (2, False)):
+        with threads(count, parallel), Session.open(session) as s:
+            data = radiance.load_training_data(s, stage1, "cpu")
+            first = radiance.new_field(data, stage1, 0, "cpu", "cpu")
+            data.track = Poses.read_file(uninterrupted / "poses.h5")  # as stage II has it
+            start_field, start = material.start_stage_two(field, data, s, mconfig, "cpu")
+        stage_one = [data.derived(), first.state_dict()]
+        stage_two = [start, start_field.state_dict(), start_field.start_variation]
+        found.append(digest(*flat(stage_one), *flat(stage_two)))
+        assert len(start_field.start_variation) == 2  # both choices baked and rendered
+    assert found[0] == found[1] == found[2]
+
+
+def flat(x) -> list:
+    """The values of nested dicts and lists, in order."""
+    if isinstance(x, dict):
+        return [v for k in sorted(x) for v in flat(x[k])]
+    if isinstance(x, list | tuple):
+        return [v for item in x for v in flat(item)]
+    return [x]
+
+
+def test_the_first_compiled_kernel_leaves_torch_on_the_threads_it_was_set_to():
+    """In a fresh process: numba's OpenMP pool, started by a cube-map lookup (before any
+    render), must not put torch on every core."""
+    script = """
+import torch
+torch.set_num_threads(1)
+from evcap.recon._cube_cpu import cube_lookup_cpu
+cube_lookup_cpu(torch.rand(6, 3, 4, 4), torch.randn(10, 3))
+print(torch.get_num_threads())
+"""
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["1"]
