@@ -175,16 +175,18 @@ def flat(x) -> list:
     return [x]
 
 
-def test_the_first_compiled_kernel_leaves_torch_on_the_threads_it_was_set_to():
-    """In a fresh process: numba's OpenMP pool, started by a cube-map lookup (before any
-    render), must not put torch on every core."""
-    script = """
+def test_a_reconstruction_keeps_to_the_threads_torch_was_set_to(session, tmp_path):
+    """In a fresh process set to one thread: numba's OpenMP pool, started by the first
+    compiled kernel (a cube-map lookup of the background, before any render), put torch and
+    the kernels on every core."""
+    script = f"""
 import torch
 torch.set_num_threads(1)
-from evcap.recon._cube_cpu import cube_lookup_cpu
-cube_lookup_cpu(torch.rand(6, 3, 4, 4), torch.randn(10, 3))
-print(torch.get_num_threads())
+import numba
+from evcap.recon.reconstruct import reconstruct
+reconstruct({str(session)!r}, {str(tmp_path)!r}, preset="tiny", stage="radiance", iterations=3)
+print(torch.get_num_threads(), numba.get_num_threads())
 """
     run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
-    assert run.stdout.split() == ["1"]
+    assert run.stdout.split() == ["1", "1"]
