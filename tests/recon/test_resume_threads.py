@@ -23,8 +23,10 @@ from evcap.session import Session
 from evcap.sim.scene import load_scene
 from evcap.sim.simulate import simulate
 
-# the poses refined: stage II goes on the path stage I refined (OUT/poses.h5)
+# the poses refined: stage II goes on the path stage I refined (OUT/poses.h5); visibility and
+# the light's bounces baked at stage II's start
 RUN = {"preset": "tiny", "material_iterations": 12, "refine_poses": "on"}
+RUN |= {"visibility": "on", "indirect": "on"}
 # what each stage builds at its start: going on, it must take all of it from its state
 BUILDERS = {
     "radiance": [(radiance, "new_field"), (radiance, "scene_volume"), (radiance, "render_grid")],
@@ -109,6 +111,7 @@ def test_a_stage_goes_on_on_other_threads_from_what_it_saved(
     which = "I" if stage == "radiance" else "II"
     assert said == [s for s in said if s.startswith(f"stage {which}: going on from step {at}")]
     assert said and not result.interrupted
+    assert len(saved(tmp_path, "material")["material"]["bounce_receivers"]) > 0
     for name in ("radiance", "material"):
         whole, resumed = saved(uninterrupted, name), saved(tmp_path, name)
         key = "gaussians" if name == "radiance" else "material"
