@@ -55,6 +55,18 @@ def screenshot(tmp_path):
 
 
 @pytest.fixture(scope="session")
+def metrics_without_times():
+    """read(OUT) -> OUT/metrics.json without the times it took: what repeats bit for bit."""
+
+    def drop(x):
+        if isinstance(x, dict):
+            return {k: drop(v) for k, v in x.items() if "seconds" not in k}
+        return [drop(v) for v in x] if isinstance(x, list) else x
+
+    return lambda out: drop(json.loads((Path(out) / "metrics.json").read_text()))
+
+
+@pytest.fixture(scope="session")
 def davis346_calibrations() -> Path:
     """Real DAVIS346 calibrations (ROS camera_info and Kalibr files)."""
     folder = SHARED / "data" / "davis346-calibrations"

@@ -6,11 +6,13 @@ import dataclasses
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 from contextlib import contextmanager
 
 import pytest
+import torch
 
 from evcap.app import demo
 from evcap.app.pipeline import PipelineInterrupted
@@ -93,6 +95,38 @@ def test_the_demo_recovers_the_sphere(tmp_path):
     # 18.7 for the views never relit)
     assert metrics["relit_object_psnr_cc"] > metrics["relit_object_psnr_constant"] + 1.5
     assert metrics["relit_object_psnr_cc"] > metrics["relit_object_psnr_cc_baseline"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("threads", [1, 2])
+def test_the_demo_interrupted_in_stage_two_ends_as_if_it_never_stopped(
+    tmp_path, threads, metrics_without_times
+):
+    """The demo as shipped, on one and on two threads: Ctrl-C (SIGINT) after stage II's step
+    25, then the same command, ends with the uninterrupted demo's metrics.json, all but the
+    times (about 8 minutes a thread count here)."""
+
+    @contextmanager
+    def sigint_in_stage_two(description: str):
+        def update(done: int, total: int, status: str = "") -> None:
+            if status.startswith("material") and done == 25:
+                os.kill(os.getpid(), signal.SIGINT)  # the step ends, its state is saved
+
+        yield update
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        demo.run_demo(tmp_path / "whole", say=lambda line: None)
+        with pytest.raises(PipelineInterrupted, match="reconstruct"):
+            demo.run_demo(tmp_path / "cut", say=lambda line: None, progress=sigint_in_stage_two)
+        lines: list[str] = []
+        demo.run_demo(tmp_path / "cut", say=lines.append)
+    finally:
+        torch.set_num_threads(before)
+    assert any("stage II: going on from step 25 of 60" in line for line in lines)
+    whole, cut = (metrics_without_times(tmp_path / d / "reconstruction") for d in ("whole", "cut"))
+    assert cut == whole
 
 
 @pytest.mark.slow

@@ -126,6 +126,20 @@ def test_other_settings_are_refused_or_started_over(session, tmp_path):
     assert result.iterations == 150 and not result.interrupted
 
 
+def test_a_state_another_version_saved_is_refused_by_name(session, tmp_path):
+    reconstruct(session, tmp_path, **RUN, stage="radiance", progress=interrupt_at(20, "radiance"))
+    path = ReconstructionFolder(tmp_path).training_state("radiance")
+    state = torch.load(path, weights_only=True)
+    del state["format"], state["evcap"], state["data"]  # as the evcap before format 2 saved it
+    torch.save(state, path)
+    expected = "another version of evcap saved it .*state format 1.*pass --force to start over"
+    with pytest.raises(InputError, match=expected):
+        reconstruct(session, tmp_path, **RUN, stage="radiance")
+    said = []
+    reconstruct(session, tmp_path, **RUN, stage="radiance", overwrite=True, say=said.append)
+    assert len(said) == 1 and said[0].startswith("stage I: starting over, the state it saved")
+
+
 def test_a_step_cut_in_two_is_not_saved(session, tmp_path, monkeypatch):
     from evcap.recon import densify
 

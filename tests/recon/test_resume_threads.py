@@ -4,7 +4,6 @@ derives is the same on any number of threads."""
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 from contextlib import contextmanager
@@ -90,7 +89,7 @@ def uninterrupted(session, tmp_path_factory):
     ],
 )
 def test_a_stage_goes_on_on_other_threads_from_what_it_saved(
-    session, uninterrupted, tmp_path, monkeypatch, stage, before, after
+    session, uninterrupted, tmp_path, monkeypatch, stage, before, after, metrics_without_times
 ):
     """Interrupted on some threads, gone on with on others, with every builder of the
     stage's start made to fail: it takes what it derived from its state, and ends bit for bit
@@ -118,18 +117,7 @@ def test_a_stage_goes_on_on_other_threads_from_what_it_saved(
         assert whole[key].keys() == resumed[key].keys()
         for k, value in whole[key].items():
             assert torch.equal(resumed[key][k], value), f"{name} {k}"
-    assert timeless(tmp_path / "metrics.json") == timeless(uninterrupted / "metrics.json")
-
-
-def timeless(path) -> dict:
-    """metrics.json without the times it took."""
-
-    def drop(x):
-        if isinstance(x, dict):
-            return {k: drop(v) for k, v in x.items() if "seconds" not in k}
-        return [drop(v) for v in x] if isinstance(x, list) else x
-
-    return drop(json.loads(path.read_text()))
+    assert metrics_without_times(tmp_path) == metrics_without_times(uninterrupted)
 
 
 def big_field(out, copies: int) -> radiance.RadianceField:
