@@ -12,7 +12,8 @@ the values and computes the ends of its run by other instructions than its middl
 came out otherwise on 5 of 116,640 values between one and two threads, measured), and a
 reduction sums each thread's part apart. Where a stage decides something from such values at
 its start (which Gaussians block the light, which effects explain the radiance best), it
-therefore computes them with torch on one thread (``torch_on_one_thread``).
+therefore computes them with torch on one thread (``torch_on_one_thread``). Thread counts are
+the process's, torch's as these: one reconstruction at a time per process.
 """
 
 from __future__ import annotations

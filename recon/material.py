@@ -22,7 +22,6 @@ import torch
 import torch.nn.functional as F
 
 from evcap.edge_maps import edge_map
-from evcap.errors import InputError
 from evcap.recon._threads import torch_on_one_thread
 from evcap.recon.config import Ablation, Backend, EffectMode, MaterialConfig, RadianceConfig
 from evcap.recon.gaussians import Background, Gaussians
@@ -439,6 +438,22 @@ def stage_one_digest(radiance: RadianceField, data: TrainingData) -> str:
     return digest(*(g[k] for k in sorted(g)), data.track.t, data.track.T_world_cam)
 
 
+def resume_misfit(state: dict, radiance: RadianceField, data: TrainingData) -> str:
+    """Why stage II cannot go on from a saved ``state`` with the stage I ``radiance`` and the
+    path ``data.track`` (OUT's): it started from another stage I, or it does not hold what
+    this evcap's stage II holds; "" when it can."""
+    if state["start"]["stage_one"] != stage_one_digest(radiance, data):
+        return (
+            "it was started from another stage I than the one beside it (its Gaussians or the "
+            "path it refined differ)"
+        )
+    try:
+        MaterialField.from_state(state["material"])
+    except (KeyError, RuntimeError) as e:
+        return f"it does not hold what this evcap's stage II holds ({' '.join(str(e).split())})"
+    return ""
+
+
 def train_material(
     radiance: RadianceField,
     data: TrainingData,
@@ -459,7 +474,7 @@ def train_material(
     """Fit stage II from a stage-I field; Ctrl-C ends it at the end of the step with what was
     learnt so far. ``ablate`` switches terms off: "anchor", "tv", "distill". ``resume`` and
     ``save_state`` as for train_radiance: what stage II derived at its start is taken from the
-    state, nothing is baked or rendered again."""
+    state, nothing is baked or rendered again (``resume_misfit`` tells whether it fits)."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed + 2)
     radiance.requires_grad_(False)
@@ -469,20 +484,7 @@ def train_material(
     else:
         start = resume["start"]
         derived = resume["data"]  # what ``data`` was loaded with (load_training_data)
-        if start["stage_one"] != stage_one_digest(radiance, data):
-            raise InputError(
-                "the saved stage-II state was started from another stage I than the one "
-                "saved beside it (its Gaussians or refined poses differ): pass --force to "
-                "start stage II over"
-            )
-        try:
-            field = MaterialField.from_state(resume["material"], radiance.backend).to(device)
-        except (KeyError, RuntimeError) as e:  # saved by an evcap whose stage II held others
-            found = " ".join(str(e).split())
-            raise InputError(
-                f"the saved stage-II state does not fit this version of evcap ({found}); "
-                "pass --force to start stage II over"
-            ) from e
+        field = MaterialField.from_state(resume["material"], radiance.backend).to(device)
     frames_all = start["frames"].numpy()
     weights = {int(f): w.to(device) for f, w in zip(frames_all, start["tv_weights"], strict=True)}
     targets = {int(f): x.to(device) for f, x in zip(frames_all, start["targets"], strict=True)}

@@ -84,17 +84,11 @@ def load_training_data(
     session: Session, config: RadianceConfig, device: str, derived: dict | None = None
 ) -> TrainingData:
     """What stage I takes from the session. ``derived``: what a saved training derived
-    (TrainingData.derived()'s), to go on with instead of deriving it again; InputError when
-    the events are now counted otherwise."""
+    (TrainingData.derived()'s), taken instead of deriving it again (the events' windows are
+    counted again: whoever goes on compares their digest with the saved one)."""
     with torch_on_one_thread():  # see recon/_threads.py
         data = _training_data(session, config, device, derived is None)
     if derived is not None:
-        if derived["windows"] != data.windows.digest():
-            raise InputError(
-                "the session's events, as the reconstruction counts them, are not those the "
-                "interrupted training was fitted to (another version of evcap counted them): "
-                "pass --force to start over"
-            )
         data.grid = RenderGrid.from_state(derived["grid"], device)
         coarse = derived["coarse_grid"]
         data.coarse_grid = RenderGrid.from_state(coarse, device) if coarse is not None else None

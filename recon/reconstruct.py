@@ -46,6 +46,7 @@ from evcap.recon.material import (
     MaterialFit,
     environment_image,
     light_from_image,
+    resume_misfit,
     train_material,
 )
 from evcap.recon.metrics import (
@@ -198,11 +199,10 @@ def reconstruct(
         states = _saved_states(out, runs, settings, resume, overwrite, say)
         if fits_radiance and states["radiance"] is None and states["material"] is not None:
             field, _ = load_checkpoint(out.checkpoint("radiance"), device, backend)
+        stage_one = field if states["material"] is not None else None
+        data = _data_to_go_on_with(session, config, device, out, states, stage_one, overwrite, say)
         # stage I is not run again for stage II alone, nor to go on with an interrupted stage II
         skip = not fits_radiance or states["material"] is not None
-        going_on = states["radiance"] or states["material"]  # at most one of them
-        # what the stage going on derived from the session at its start, as its state kept it
-        data = load_training_data(session, config, device, going_on and going_on["data"])
         if skip and out.poses.exists():  # stage II goes on the path stage I refined
             data.track = Poses.read_file(out.poses)
         gt = GroundTruth.read(session) if GroundTruth.present(session) else None
@@ -301,7 +301,8 @@ def reconstruct(
         sections["material"] = cfg.to_dict(mconfig)
     out.write_config(sections)
     out.write_result(result)
-    if write_poses and out.poses.exists():
+    # an interrupted run's poses are not the session's yet: it goes on from the session's
+    if write_poses and out.poses.exists() and not result.interrupted:
         Poses.read_file(out.poses).write(session_path)
     return result
 
@@ -350,17 +351,17 @@ def _saved_states(
     why a saved state is not gone on from."""
     states: dict[Training, dict | None] = {"radiance": None, "material": None}
     for name in runs if resume else ():
-        state = resume_.load_state(out.training_state(name))
-        why = resume_.misfit(state, settings[name]) if state is not None else ""
-        states[name] = None if why else state
-        stage = "stage I" if name == "radiance" else "stage II"
-        if why and not overwrite:
-            raise InputError(
-                f"{out} holds a reconstruction interrupted in {stage} that cannot be gone on "
-                f"with: {why}; {resume_.remedy(state)}"
-            )
+        path = out.training_state(name)
+        try:
+            state = resume_.load_state(path)
+        except InputError as e:
+            state, why, remedy = None, str(e), "pass --force to start over"
+        else:
+            why = resume_.misfit(state, settings[name]) if state is not None else ""
+            remedy = resume_.remedy(state) if why else ""
         if why:
-            say(f"{stage}: starting over, the state it saved cannot be gone on with: {why}")
+            _refuse_or_say(out, name, why, remedy, overwrite, say)
+        states[name] = None if why else state
     if states["radiance"] is not None:
         states["material"] = None  # stage II starts afresh after it
     nothing_saved = all(v is None for v in states.values())
@@ -373,6 +374,59 @@ def _saved_states(
         if states[name] is None:
             out.training_state(name).unlink(missing_ok=True)
     return states
+
+
+def _data_to_go_on_with(
+    session: Session,
+    config: cfg.RadianceConfig,
+    device: Device,
+    out: ReconstructionFolder,
+    states: dict[Training, dict | None],
+    stage_one: RadianceField | None,
+    overwrite: bool,
+    say: Callable[[str], None],
+) -> TrainingData:
+    """The training data; for a stage that goes on, with what it derived at its start, once
+    the checks that need the session's events (and for stage II, the stage I beside it, the
+    ``stage_one`` field, and the path it refined) find its state fits. One that does not is
+    refused, or with ``overwrite`` said and dropped (from ``states`` and OUT)."""
+    name: Training = "radiance" if states["radiance"] is not None else "material"
+    state = states[name]
+    if state is None:
+        return load_training_data(session, config, device)
+    data = load_training_data(session, config, device, state["data"])
+    why = ""
+    if state["data"]["windows"] != data.windows.digest():
+        why = "the session's events, as this evcap counts them, are not those it was fitted to"
+    elif name == "material":
+        if out.poses.exists():
+            data.track = Poses.read_file(out.poses)
+        why = resume_misfit(state, stage_one, data)
+    if not why:
+        return data
+    _refuse_or_say(out, name, why, "pass --force to start over", overwrite, say)
+    states[name] = None
+    out.training_state(name).unlink(missing_ok=True)
+    return load_training_data(session, config, device)
+
+
+def _refuse_or_say(
+    out: ReconstructionFolder,
+    name: Training,
+    why: str,
+    remedy: str,
+    overwrite: bool,
+    say: Callable[[str], None],
+) -> None:
+    """A saved state that cannot be gone on with: refused (InputError), or with ``overwrite``
+    said, for the stage to start over."""
+    stage = "stage I" if name == "radiance" else "stage II"
+    if not overwrite:
+        raise InputError(
+            f"{out} holds a reconstruction interrupted in {stage} that cannot be gone on with "
+            f"({why}); {remedy}"
+        )
+    say(f"{stage}: starting over; the state it saved cannot be gone on with ({why})")
 
 
 def _going_on(name: str, state: dict, iterations: int) -> str:

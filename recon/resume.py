@@ -107,7 +107,7 @@ def misfit(state: dict, settings: dict) -> str:
     evcap saved it, it was started on another session, or with other settings (named, with
     their values then and now); "" when it can."""
     if state.get("format") != STATE_FORMAT:
-        saved_by = state.get("evcap", "an evcap before 0.1.0")
+        saved_by = state.get("evcap", "an earlier evcap")
         return (
             f"another version of evcap saved it ({saved_by}, state format "
             f"{state.get('format', 1)}; this evcap {__version__} goes on from format "
@@ -120,8 +120,12 @@ def misfit(state: dict, settings: dict) -> str:
             "it was started on another session (or this one's events, poses or calibration "
             "changed since)"
         )
+
+    def shown(values: dict, name: str) -> str:
+        return repr(values[name]) if name in values else "none"
+
     changed = [
-        f"{name} {then.get(name, '(none)')!r} (now {now.get(name, '(none)')!r})"
+        f"{name} {shown(then, name)} (now {shown(now, name)})"
         for name in sorted(set(then) | set(now))
         if then.get(name) != now.get(name)
     ]

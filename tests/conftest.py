@@ -55,6 +55,21 @@ def screenshot(tmp_path):
 
 
 @pytest.fixture(scope="session")
+def interrupt_at():
+    """interrupt_at(step, stage) -> a reconstruction's progress callback that presses Ctrl-C
+    once ``stage``'s ("radiance" or "material") step ``step`` is done."""
+
+    def at(step: int, stage: str):
+        def progress(done: int, total: int, status: str = "") -> None:
+            if done == step and status.startswith("material") == (stage == "material"):
+                raise KeyboardInterrupt
+
+        return progress
+
+    return at
+
+
+@pytest.fixture(scope="session")
 def metrics_without_times():
     """read(OUT) -> OUT/metrics.json without the times it took: what repeats bit for bit."""
 

@@ -24,16 +24,6 @@ def session(tiny_scene, tmp_path_factory):
     return out
 
 
-def interrupt_at(step: int, stage: str):
-    """A progress callback that presses Ctrl-C once ``stage``'s step ``step`` is done."""
-
-    def progress(done: int, total: int, status: str = "") -> None:
-        if done == step and status.startswith("material") == (stage == "material"):
-            raise KeyboardInterrupt
-
-    return progress
-
-
 def gaussians(out):
     return torch.load(out / "checkpoint" / "radiance.pt", weights_only=True)["gaussians"]
 
@@ -51,7 +41,7 @@ def uninterrupted(session, tmp_path_factory):
     return out, reconstruct(session, out, **RUN)
 
 
-def test_stage_one_goes_on_from_where_it_stopped(session, uninterrupted, tmp_path):
+def test_stage_one_goes_on_from_where_it_stopped(session, uninterrupted, tmp_path, interrupt_at):
     whole, expected = uninterrupted
     # step 40: before the densification at step 50, which then uses the gradients seen before
     first = reconstruct(session, tmp_path, **RUN, progress=interrupt_at(40, "radiance"))
@@ -76,7 +66,9 @@ def test_stage_one_goes_on_from_where_it_stopped(session, uninterrupted, tmp_pat
         reconstruct(session, tmp_path, **RUN)
 
 
-def test_stage_two_goes_on_without_running_stage_one_again(session, uninterrupted, tmp_path):
+def test_stage_two_goes_on_without_running_stage_one_again(
+    session, uninterrupted, tmp_path, interrupt_at
+):
     whole, expected = uninterrupted
     first = reconstruct(session, tmp_path, **RUN, progress=interrupt_at(5, "material"))
     assert first.interrupted and first.material_iterations == 5
@@ -94,7 +86,9 @@ def test_stage_two_goes_on_without_running_stage_one_again(session, uninterrupte
     assert metrics["base_color_psnr_cc"] == pytest.approx(expected.figures.base_color_psnr_cc)
 
 
-def test_a_stage_two_state_that_does_not_fit_is_refused_by_name(session, uninterrupted, tmp_path):
+def test_a_stage_two_state_that_does_not_fit_is_refused_by_name(
+    session, uninterrupted, tmp_path, interrupt_at
+):
     """A state saved by an evcap whose stage II held other arrays (before the visibility was
     baked per direction) names the problem and the way out, not a PyTorch traceback."""
     whole, _ = uninterrupted
@@ -106,11 +100,29 @@ def test_a_stage_two_state_that_does_not_fit_is_refused_by_name(session, uninter
     state = torch.load(path, weights_only=True)
     state["material"]["visibility_sh"] = state["material"].pop("visibility")
     torch.save(state, path)
-    with pytest.raises(InputError, match="does not fit this version.*--force"):
+    with pytest.raises(InputError, match="does not hold what this evcap's stage II holds.*--force"):
         reconstruct(session, tmp_path, **run)
 
 
-def test_other_settings_are_refused_or_started_over(session, tmp_path):
+def test_a_stage_two_state_from_another_stage_one_is_refused_or_started_over(
+    session, tmp_path, interrupt_at
+):
+    """Stage I beside it changed after stage II was interrupted: refused by name, and with
+    --force (as the demo runs it) said and started over."""
+    reconstruct(session, tmp_path, **RUN, progress=interrupt_at(5, "material"))
+    path = tmp_path / "checkpoint" / "radiance.pt"
+    checkpoint = torch.load(path, weights_only=True)
+    checkpoint["gaussians"]["means"][0] += 0.01
+    torch.save(checkpoint, path)
+    with pytest.raises(InputError, match="stage II that cannot .*another stage I.*--force"):
+        reconstruct(session, tmp_path, **RUN)
+    said = []
+    result = reconstruct(session, tmp_path, **RUN, overwrite=True, say=said.append)
+    assert said and said[0].startswith("stage II: starting over; the state it saved cannot")
+    assert not result.interrupted and result.material_iterations == 12
+
+
+def test_other_settings_are_refused_or_started_over(session, tmp_path, interrupt_at):
     reconstruct(session, tmp_path, **RUN, stage="radiance", progress=interrupt_at(20, "radiance"))
     with pytest.raises(InputError, match="stage I .* other settings: seed 0 [(]now 1[)]"):
         reconstruct(session, tmp_path, **RUN, stage="radiance", seed=1)
@@ -120,13 +132,13 @@ def test_other_settings_are_refused_or_started_over(session, tmp_path):
         session, tmp_path, **RUN, stage="radiance", seed=1, overwrite=True, say=said.append
     )
     assert said == [
-        "stage I: starting over, the state it saved cannot be gone on with: it was started "
-        "with other settings: seed 0 (now 1)"
+        "stage I: starting over; the state it saved cannot be gone on with (it was started "
+        "with other settings: seed 0 (now 1))"
     ]
     assert result.iterations == 150 and not result.interrupted
 
 
-def test_a_state_another_version_saved_is_refused_by_name(session, tmp_path):
+def test_a_state_another_version_saved_is_refused_by_name(session, tmp_path, interrupt_at):
     reconstruct(session, tmp_path, **RUN, stage="radiance", progress=interrupt_at(20, "radiance"))
     path = ReconstructionFolder(tmp_path).training_state("radiance")
     state = torch.load(path, weights_only=True)
@@ -137,7 +149,7 @@ def test_a_state_another_version_saved_is_refused_by_name(session, tmp_path):
         reconstruct(session, tmp_path, **RUN, stage="radiance")
     said = []
     reconstruct(session, tmp_path, **RUN, stage="radiance", overwrite=True, say=said.append)
-    assert len(said) == 1 and said[0].startswith("stage I: starting over, the state it saved")
+    assert len(said) == 1 and said[0].startswith("stage I: starting over; the state it saved")
 
 
 def test_a_step_cut_in_two_is_not_saved(session, tmp_path, monkeypatch):

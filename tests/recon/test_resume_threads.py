@@ -54,14 +54,6 @@ def threads(count: int, kernels_parallel: bool = True):
         numba.config.NUMBA_NUM_THREADS = limit
 
 
-def interrupt_at(step: int, stage: str):
-    def progress(done: int, total: int, status: str = "") -> None:
-        if done == step and status.startswith("material") == (stage == "material"):
-            raise KeyboardInterrupt
-
-    return progress
-
-
 def saved(out, name: str) -> dict:
     return torch.load(out / "checkpoint" / f"{name}.pt", weights_only=True)
 
@@ -89,7 +81,15 @@ def uninterrupted(session, tmp_path_factory):
     ],
 )
 def test_a_stage_goes_on_on_other_threads_from_what_it_saved(
-    session, uninterrupted, tmp_path, monkeypatch, stage, before, after, metrics_without_times
+    session,
+    uninterrupted,
+    tmp_path,
+    monkeypatch,
+    stage,
+    before,
+    after,
+    metrics_without_times,
+    interrupt_at,
 ):
     """Interrupted on some threads, gone on with on others, with every builder of the
     stage's start made to fail: it takes what it derived from its state, and ends bit for bit
