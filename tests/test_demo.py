@@ -104,7 +104,7 @@ def test_the_demo_interrupted_in_stage_two_ends_as_if_it_never_stopped(
 ):
     """The demo as shipped, on one and on two threads: Ctrl-C (SIGINT) after stage II's step
     25, then the same command, ends with the uninterrupted demo's metrics.json, all but the
-    times (about 8 minutes a thread count here)."""
+    times (3 to 3.5 minutes a thread count here)."""
 
     @contextmanager
     def sigint_in_stage_two(description: str):
