@@ -32,6 +32,7 @@ from evcap.errors import InputError
 from evcap.recon._threads import follow_torch_threads
 from evcap.recon.noise_filter import supported
 from evcap.recon.optics import SensorOptics
+from evcap.recon.resume import digest
 from evcap.session import Session
 
 MIN_EVENTS = 500  # fewer than this say nothing of a scene: refused before minutes of fitting
@@ -176,8 +177,6 @@ class EventWindows:
         """A digest of the tables (and the crowded events'): what a saved training was fitted
         to, checked when it goes on (the windows are counted again from the session: in
         integers, the same on every machine)."""
-        from evcap.recon.resume import digest
-
         crowded = self.crowded.digest() if self.crowded is not None else None
         arrays = (self.keys, self.before, self.rows, self.threshold_on, self.threshold_off)
         return digest(self.width, self.height, self.frame_times, *arrays, crowded)

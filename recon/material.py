@@ -51,6 +51,7 @@ from evcap.recon.shading import (
 )
 from evcap.recon.step_timer import UNTIMED, StepTimer
 from evcap.recon.visibility import Bounce, bake_occlusion
+from evcap.records import Poses
 from evcap.session import Session
 
 # the channels of a stage-II render, in order
@@ -428,21 +429,21 @@ def start_stage_two(
         "frames": torch.from_numpy(frames),
         "tv_weights": torch.stack(tv_weights),
         "targets": torch.stack(targets),
-        "stage_one": stage_one_digest(radiance, data),
+        "stage_one": stage_one_digest(radiance, data.track),
     }
 
 
-def stage_one_digest(radiance: RadianceField, data: TrainingData) -> str:
+def stage_one_digest(radiance: RadianceField, track: Poses) -> str:
     """A digest of what stage II starts from: stage I's Gaussians and the trajectory."""
     g = radiance.gaussians.state_dict()
-    return digest(*(g[k] for k in sorted(g)), data.track.t, data.track.T_world_cam)
+    return digest(*(g[k] for k in sorted(g)), track.t, track.T_world_cam)
 
 
-def resume_misfit(state: dict, radiance: RadianceField, data: TrainingData) -> str:
+def resume_misfit(state: dict, radiance: RadianceField, track: Poses) -> str:
     """Why stage II cannot go on from a saved ``state`` with the stage I ``radiance`` and the
-    path ``data.track`` (OUT's): it started from another stage I, or it does not hold what
-    this evcap's stage II holds; "" when it can."""
-    if state["start"]["stage_one"] != stage_one_digest(radiance, data):
+    path ``track`` (OUT's): it started from another stage I, or it does not hold what this
+    evcap's stage II holds; "" when it can."""
+    if state["start"]["stage_one"] != stage_one_digest(radiance, track):
         return (
             "it was started from another stage I than the one beside it (its Gaussians or the "
             "path it refined differ)"

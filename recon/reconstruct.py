@@ -399,9 +399,8 @@ def _data_to_go_on_with(
     if state["data"]["windows"] != data.windows.digest():
         why = "the session's events, as this evcap counts them, are not those it was fitted to"
     elif name == "material":
-        if out.poses.exists():
-            data.track = Poses.read_file(out.poses)
-        why = resume_misfit(state, stage_one, data)
+        track = Poses.read_file(out.poses) if out.poses.exists() else data.track
+        why = resume_misfit(state, stage_one, track)
     if not why:
         return data
     _refuse_or_say(out, name, why, "pass --force to start over", overwrite, say)

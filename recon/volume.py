@@ -13,7 +13,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 
 @dataclass
@@ -27,7 +26,7 @@ class SceneVolume:
     def state(self) -> dict:
         """The volume as saved with a training's state."""
         return {
-            "center": torch.from_numpy(np.asarray(self.center, np.float64)),
+            "center": [float(c) for c in self.center],
             "radius": float(self.radius),
             "converging": bool(self.converging),
             "near": float(self.near),
@@ -37,7 +36,7 @@ class SceneVolume:
     @classmethod
     def from_state(cls, state: dict) -> SceneVolume:
         return cls(
-            state["center"].numpy(),
+            np.array(state["center"], np.float64),
             state["radius"],
             state["converging"],
             state["near"],
