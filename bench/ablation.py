@@ -71,21 +71,21 @@ PUBLISHED = {
 # ours beside the method's: (our column, the method's, which way is better)
 COMPARED = (
     ("normal_mae_deg", "normal_mae_deg", -1),
-    ("base_color_psnr_cc", "base_color_psnr", 1),
-    ("pbr_render_psnr_cc", "render_psnr", 1),
+    ("base_color_psnr_gain", "base_color_psnr", 1),
+    ("pbr_render_psnr_gain", "render_psnr", 1),
 )
 COLUMNS = (
     "scene",
     "variant",
     "effects",
     "normal_mae_deg",
-    "base_color_psnr_cc",
-    "base_color_psnr_cc_shadow",
-    "base_color_psnr_cc_bleeding",
-    "base_color_psnr_cc_baseline",
-    "relit_object_psnr_cc",
+    "base_color_psnr_gain",
+    "base_color_psnr_gain_shadow",
+    "base_color_psnr_gain_bleeding",
+    "base_color_psnr_gain_baseline",
+    "relit_object_psnr_gain",
     "roughness_mae",
-    "pbr_render_psnr_cc",
+    "pbr_render_psnr_gain",
     "material_seconds",
 )
 

@@ -57,11 +57,11 @@ COLUMNS = (
     "resolution",
     "seconds",
     "gaussians",
-    "object_psnr_cc",
+    "object_psnr_gain",
     "object_psnr_constant",
     "normal_mae_deg",
     "depth_rel_err",
-    "render_psnr_cc",
+    "render_psnr_gain",
 )
 
 

@@ -20,13 +20,13 @@ from _common import report
 from evcap.recon.reconstruct import reconstruct
 
 FIGURES = (
-    "object_psnr_cc",
+    "object_psnr_gain",
     "object_psnr_constant",
     "radiance_normal_mae_deg",
     "normal_mae_deg",
     "depth_rel_err",
-    "base_color_psnr_cc",
-    "pbr_render_psnr_cc",
+    "base_color_psnr_gain",
+    "pbr_render_psnr_gain",
 )
 
 STARTED = time.perf_counter()

@@ -154,7 +154,7 @@ def view_figures(asset: MeshAsset, out: Path, session: Path) -> dict:
     if maps.exists():
         stage2 = np.load(maps)["base_color"]
         same = surface_metrics(stage2, truth.base_color, surface, "base_color")
-        figures["stage2_base_color_psnr_cc"] = same["base_color_psnr_cc"]
+        figures["stage2_base_color_psnr_gain"] = same["base_color_psnr_gain"]
         figures["stage2_base_color_psnr"] = same["base_color_psnr"]
     return figures
 
@@ -225,7 +225,7 @@ def main(argv: list[str] | None = None) -> dict:
         **glb,
         **surface_figures(asset, points, normals, args.samples),
         **view_figures(asset, folder.root, session),
-        "stage2_metrics_base_color_psnr_cc": run.get("base_color_psnr_cc"),
+        "stage2_metrics_base_color_psnr_gain": run.get("base_color_psnr_gain"),
         "stage1_depth_rel_err": run.get("depth_rel_err"),
         "stage1_normal_mae_deg": run.get("radiance_normal_mae_deg") or run.get("normal_mae_deg"),
     }

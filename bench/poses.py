@@ -126,16 +126,16 @@ def reconstruction_difference(
             ).figures
             out[f"recon_{name}_poses_seconds{tag}"] = time.perf_counter() - t0
             for key in (
-                "object_psnr_cc",
+                "object_psnr_gain",
                 "object_psnr_constant",
                 "normal_mae_deg",
-                "render_psnr_cc",
+                "render_psnr_gain",
             ):
                 out[f"recon_{name}_poses_{key}{tag}"] = getattr(f, key)
         for name in names[1:]:
-            out[f"recon_object_psnr_cc_loss_db_{name}{tag}"] = (
-                out[f"recon_true_poses_object_psnr_cc{tag}"]
-                - out[f"recon_{name}_poses_object_psnr_cc{tag}"]
+            out[f"recon_object_psnr_gain_loss_db_{name}{tag}"] = (
+                out[f"recon_true_poses_object_psnr_gain{tag}"]
+                - out[f"recon_{name}_poses_object_psnr_gain{tag}"]
             )
         refined = Poses.read_file(ReconstructionFolder(work / f"recon_refined{tag}").poses)
         for name, poses in (("estimated", given), ("refined", refined)):
@@ -148,13 +148,13 @@ def reconstruction_difference(
                 for k in ("rotation_median_deg", "translation_median_pct"):
                     out[f"{name}_{k}_aligned_by_{by}{tag}"] = e[k]
     for name in names:
-        key = f"recon_{name}_poses_object_psnr_cc"
+        key = f"recon_{name}_poses_object_psnr_gain"
         runs = [out[key + ("" if s == seeds[0] else f"_seed{s}")] for s in seeds]
         out[f"{key}_mean"] = float(np.mean(runs))
     for name in names[1:]:
-        out[f"recon_object_psnr_cc_loss_db_{name}_mean"] = (
-            out["recon_true_poses_object_psnr_cc_mean"]
-            - out[f"recon_{name}_poses_object_psnr_cc_mean"]
+        out[f"recon_object_psnr_gain_loss_db_{name}_mean"] = (
+            out["recon_true_poses_object_psnr_gain_mean"]
+            - out[f"recon_{name}_poses_object_psnr_gain_mean"]
         )
     return out
 

@@ -37,12 +37,12 @@ COLUMNS = (
     "resolution",
     "seconds",
     "gaussians",
-    "object_psnr_cc",
+    "object_psnr_gain",
     "object_psnr_constant",
-    "object_ssim_cc",
+    "object_ssim_gain",
     "normal_mae_deg",
     "depth_rel_err",
-    "render_psnr_cc",
+    "render_psnr_gain",
     "blur_psnr",
 )
 
@@ -71,7 +71,7 @@ def plot(rows: list[dict], path: Path) -> None:
     fig, axes = plt.subplots(2, len(scenes), figsize=(6 * len(scenes), 7.6), squeeze=False)
     for column, scene in enumerate(scenes):
         mine = [r for r in rows if r["scene"] == scene]
-        for ax, key in zip(axes[:, column], ("object_psnr_cc", "normal_mae_deg"), strict=True):
+        for ax, key in zip(axes[:, column], ("object_psnr_gain", "normal_mae_deg"), strict=True):
             for group, marker in (("preset", "o"), ("seed", "^"), ("sweep", "s")):
                 pts = [r for r in mine if r["group"] == group and r.get(key) is not None]
                 if not pts:
@@ -142,7 +142,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     spread = {}
     for scene in map(scene_label, args.scenes):
         seeded = [
-            r["object_psnr_cc"]
+            r["object_psnr_gain"]
             for r in rows
             if r["scene"] == scene and (r["group"] == "seed" or r["run"] == "fast")
         ]

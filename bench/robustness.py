@@ -125,11 +125,11 @@ COLUMNS = (
     "scene",
     "row",
     "iterations",
-    "object_psnr_cc",
+    "object_psnr_gain",
     "object_psnr_constant",
     "normal_mae_deg",
     "depth_rel_err",
-    "base_color_psnr_cc",
+    "base_color_psnr_gain",
     "events",
     "given_back_on",
     "given_back_off",
@@ -373,13 +373,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
         ideal = next((r for r in rows if r["scene"] == scene and r["row"] == "ideal"), None)
         for r in rows:
             if ideal is not None and r["scene"] == scene:
-                for k in ("object_psnr_cc", "normal_mae_deg"):
+                for k in ("object_psnr_gain", "normal_mae_deg"):
                     if r.get(k) is not None and ideal.get(k) is not None:
                         r[f"{k}_change"] = r[k] - ideal[k]
     RESULTS.mkdir(exist_ok=True)
     path = RESULTS / f"{args.name}.json"
     path.write_text(json.dumps({"benchmark": args.name, "machine": machine(), "runs": rows}))
-    columns = (*COLUMNS[:4], "object_psnr_cc_change", *COLUMNS[4:5], "normal_mae_deg_change")
+    columns = (*COLUMNS[:4], "object_psnr_gain_change", *COLUMNS[4:5], "normal_mae_deg_change")
     table = markdown_table(rows, (*columns, *COLUMNS[5:]))
     (RESULTS / f"{args.name}.md").write_text(table)
     print(table)

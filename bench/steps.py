@@ -35,11 +35,11 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 FIGURES = (
-    "object_psnr_cc",
+    "object_psnr_gain",
     "object_psnr_constant",
     "normal_mae_deg",
     "depth_rel_err",
-    "render_psnr_cc",
+    "render_psnr_gain",
 )
 
 

@@ -124,6 +124,10 @@ class RadianceConfig:
     min_opacity: float = 0.005  # pruned below
     opacity_reset_every: int = 0  # steps; 0: never (resets upset the event loss on short runs)
     background_size: int = 64  # texels along an edge of each face of the background cube map
+    # the backdrop's radiance (linear RGB) when it is known, as a NeRF-Synthetic release's white
+    # behind every view: held there, not learnt, it fixes the gain the anchor is for (the anchor
+    # is then left out) and leaves no room for fog of its colour; None: the background is learnt
+    known_background: tuple[float, float, float] | None = None
     # the trajectory refined by the event loss (recon/pose_refinement.py): a correction per
     # keyframe, one every pose_keyframe_ms, learnt from pose_from of the run on by Adam at these
     # rates (radians; fractions of the scene's extent), which decay tenfold by the end; their
@@ -311,6 +315,10 @@ def check(config: RadianceConfig) -> None:
         raise InputError("views_per_step must be at least 2 (a window needs two views)")
     if not 0 <= config.init_on_points <= 1:
         raise InputError("init_on_points is a share of init_gaussians, in [0, 1]")
+    if config.known_background is not None and (
+        len(config.known_background) != 3 or not all(v > 0 for v in config.known_background)
+    ):
+        raise InputError("known_background is a radiance: three numbers above 0 (linear RGB)")
     if not 0 <= config.pose_from < 1 or config.pose_keyframe_ms <= 0:
         raise InputError("pose_from is a fraction of the run, in [0, 1); pose_keyframe_ms > 0")
 

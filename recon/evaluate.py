@@ -14,6 +14,7 @@ from evcap.recon.metrics import (
     depth_abs_err,
     depth_rel_err,
     depth_within,
+    gain_fit,
     image_metrics,
     lpips_if_available,
     normal_mae_deg,
@@ -63,6 +64,16 @@ def render_views(
     return {k: torch.stack(v).cpu().numpy() for k, v in out.items()}
 
 
+def shown_gain(radiance: np.ndarray, truth: TruthViews) -> np.ndarray | None:
+    """[3] the gain a render's radiance [N, H, W, 3] is shown with beside the truth: the one
+    ``object_psnr_gain`` is taken after (over the whole images without an object); None
+    without the truth's radiance."""
+    if truth.radiance is None:
+        return None
+    mask = truth.object_mask()
+    return gain_fit(radiance, truth.radiance, mask if mask is not None and mask.any() else None)
+
+
 def metrics(views: dict[str, np.ndarray], truth: TruthViews) -> dict[str, float | None]:
     """Stage I against the truth: the render (whole image and the object's pixels), depth and
     normals."""
@@ -95,7 +106,7 @@ def material_metrics(
     """Stage II against the truth: base color (on the surface; also inside shadows and color
     bleeding when the truth marks them), roughness, normals, and the physically based render.
     ``radiance``: stage I's render of the same views, scored as a base color
-    (``base_color_psnr_cc_baseline``: what no decomposition at all reaches)."""
+    (``base_color_psnr_gain_baseline``: what no decomposition at all reaches)."""
     out: dict[str, float | None] = {}
     if truth.radiance is not None:
         out.update(image_metrics(views["radiance"], truth.radiance, "pbr_render"))
@@ -117,7 +128,7 @@ def material_metrics(
             )
             if radiance is not None and surface.any():
                 same = surface_metrics(radiance, truth.base_color, surface, "base_color")
-                out["base_color_psnr_cc_baseline"] = same["base_color_psnr_cc"]
+                out["base_color_psnr_gain_baseline"] = same["base_color_psnr_gain"]
         if truth.roughness is not None and surface.any():
             err = np.abs(views["roughness"] - truth.roughness)[surface]
             out["roughness_mae"] = float(err.mean())
@@ -125,17 +136,36 @@ def material_metrics(
 
 
 def relit_metrics(
-    relit: np.ndarray, truth: TruthViews, radiance: np.ndarray | None = None
+    relit: np.ndarray,
+    corrected: np.ndarray,
+    truth: TruthViews,
+    radiance: np.ndarray | None = None,
 ) -> dict[str, float]:
-    """The held-out views rendered under the truth's second light against its renders: over
-    the image, and on the object's pixels (``relit_object_psnr_cc``). ``radiance``: the views
-    under the first light, not relit, scored the same way (``relit_object_psnr_cc_baseline``:
-    what the color correction alone makes of a render that was never relit)."""
-    out = image_metrics(relit, truth.relit_radiance, "relit")
+    """The held-out views rendered under the truth's second light against its renders, over
+    the image and on the object's pixels (``relit_object_``): raw, ``relit`` as rendered under
+    the light as given; ``_gain``, ``corrected``: rendered under that light brought into the
+    model's units by the un-relit fit's gain (shown_gain) and taken back by it, so that nothing
+    is fitted to the relit truth and the new light's tint is the model's to get right.
+    ``radiance``: stage I's views, never relit, after their own gain
+    (``relit_object_psnr_gain_baseline``)."""
+    one = np.ones(3)
+    raw = image_metrics(relit, truth.relit_radiance, "relit", one)
+    out = {k: v for k, v in raw.items() if not k.endswith("_gain")}
+    out.update(
+        {
+            k: v
+            for k, v in image_metrics(corrected, truth.relit_radiance, "relit", one).items()
+            if k.endswith("_gain")
+        }
+    )
     mask = truth.object_mask()
     if mask is not None and mask.any():
-        out.update(surface_metrics(relit, truth.relit_radiance, mask, "relit_object"))
-        if radiance is not None:
-            same = surface_metrics(radiance, truth.relit_radiance, mask, "relit_object")
-            out["relit_object_psnr_cc_baseline"] = same["relit_object_psnr_cc"]
+        raw = surface_metrics(relit, truth.relit_radiance, mask, "relit_object", gain=one)
+        out.update({k: v for k, v in raw.items() if "_gain" not in k})
+        fixed = surface_metrics(corrected, truth.relit_radiance, mask, "relit_object", gain=one)
+        out.update({k: v for k, v in fixed.items() if "_gain" in k})
+        if radiance is not None and truth.radiance is not None:
+            gain = gain_fit(radiance, truth.radiance, mask)
+            same = surface_metrics(radiance, truth.relit_radiance, mask, "relit_object", gain=gain)
+            out["relit_object_psnr_gain_baseline"] = same["relit_object_psnr_gain"]
     return out

@@ -72,9 +72,9 @@ def write_views(
     out: ReconstructionFolder,
     kind: Renders,
     split: Split,
-    cc: np.ndarray | None,
+    gain: np.ndarray | None,
 ) -> None:
-    """PNGs of each view: radiance (sRGB; and color-corrected when ``cc`` is given), depth
+    """PNGs of each view: radiance (sRGB; and after ``gain`` [3] when given), depth
     (16-bit, thousandths of a scene unit), normals ((n + 1) / 2, camera frame), and base color
     (sRGB) and roughness (0..255) when the views have them; the exact values in one .npz."""
     import cv2
@@ -91,8 +91,8 @@ def write_views(
             "depth": np.clip(np.round(views["depth"][i] * 1000), 0, 65535).astype(np.uint16),
             "normal": rgb8(views["normal"][i] * 0.5 + 0.5),
         }
-        if cc is not None:
-            images["radiance_cc"] = rgb8(srgb(views["radiance"][i] * cc[:, 0] + cc[:, 1]))
+        if gain is not None:
+            images["radiance_gain"] = rgb8(srgb(views["radiance"][i] * gain))
         if "base_color" in views:
             images["base_color"] = rgb8(srgb(views["base_color"][i]))
         if "roughness" in views:
@@ -146,7 +146,8 @@ def load_checkpoint(
         background = Background.from_faces(state["background"])
     except (KeyError, RuntimeError, ValueError) as e:
         raise InputError(f"{path}: not a readable stage-I checkpoint ({e})") from e
-    return RadianceField(gaussians, background, backend).to(device), state["config"]
+    backdrop = state["config"].get("known_background")
+    return RadianceField(gaussians, background, backend, backdrop).to(device), state["config"]
 
 
 def load_material_checkpoint(

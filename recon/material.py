@@ -104,10 +104,14 @@ class MaterialField(torch.nn.Module):
         indirect: bool,
         backend: Backend = "cpu",
         bounce: Bounce | None = None,
+        backdrop: torch.Tensor | None = None,
     ) -> None:
         super().__init__()
         self.gaussians = gaussians.requires_grad_(False)
-        self.light = light  # also what the camera sees where the Gaussians leave light through
+        # also what the camera sees where the Gaussians leave light through, unless the
+        # background is known (stage I's backdrop [3])
+        self.light = light
+        self.register_buffer("backdrop", backdrop)
         n = len(gaussians)
         self.base_logits = torch.nn.Parameter(torch.zeros(n, 3))
         self.roughness_logits = torch.nn.Parameter(torch.zeros(n))
@@ -141,6 +145,7 @@ class MaterialField(torch.nn.Module):
             "indirect_sh" in state,
             backend,
             bounce,
+            state.get("backdrop"),
         )
         field.load_state_dict(state)
         return field
@@ -217,8 +222,11 @@ class MaterialField(torch.nn.Module):
         features = torch.cat(
             [color, self.base_color, self.roughness[:, None], n @ viewmat[:3, :3].T], 1
         )
-        faces = self.light.radiance_faces() if light is None else light[0]
-        sky = cube_lookup(faces, grid.directions(viewmat))
+        if self.backdrop is not None:
+            sky = self.backdrop.expand(grid.height, grid.width, 3)
+        else:
+            faces = self.light.radiance_faces() if light is None else light[0]
+            sky = cube_lookup(faces, grid.directions(viewmat))
         bg = torch.cat([sky, sky.new_zeros(*sky.shape[:-1], 7)], -1)
         g = self.gaussians
         return rasterize(
@@ -244,6 +252,8 @@ def new_material_field(
     (`base_variation`; indirect light goes with the visibility, `effect_choices`)."""
     g = radiance.gaussians
     light = Background.from_faces(radiance.background.faces.data.cpu())
+    if radiance.backdrop is not None:  # the learnt background was never used: a uniform start
+        light.faces.data.copy_(torch.log(torch.expm1(radiance.backdrop.cpu()))[None, :, None, None])
     with torch.no_grad():
         if config.normals_from == "planes" and (g.opacities > NEIGHBOUR_OPACITY).sum() >= 3:
             normals = plane_normals(g.means, g.opacities)
@@ -272,6 +282,7 @@ def new_material_field(
             indirect,
             radiance.backend,
             baked.bounce if visibility and indirect else None,
+            radiance.backdrop,
         ).to(g.means.device)
         start_material(field, target, cams)
         if len(choices) == 1:
@@ -582,7 +593,7 @@ def _losses(
             dl = dl / len(renders)
             total = total + config.distill_weight * dl
             terms["distill"] = dl.detach()
-        if "anchor" not in ablate:
+        if "anchor" not in ablate and stage1.known_background is None:
             an = anchor_loss(torch.cat(seen), stage1.anchor_level)
             total = total + config.anchor_weight * an
             terms["anchor"] = an.detach()

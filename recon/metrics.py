@@ -1,10 +1,11 @@
 """Image and geometry metrics against a simulated session's ground truth.
 
-Images are compared as displayed: linear radiance clipped to [0, 1], sRGB-encoded. Event-based
-reconstructions recover radiance only up to a gain per color channel, so papers on events
-(EventNeRF, Robust e-NeRF) also report metrics after a per-channel affine color correction;
-here it is fitted by least squares on linear radiance over all test views at once, and the
-``_cc`` metrics are taken after it. Both are reported.
+Images are compared as displayed: linear radiance clipped to [0, 1], sRGB-encoded. Raw figures
+come first. Events leave a radiance undetermined up to one gain per color channel, nothing more,
+so the corrected (``_gain``) figures are taken after one gain per channel fitted once by least
+squares on linear radiance over the scored pixels of all held-out views together (``gain_fit``);
+a relit view keeps the gain of its un-relit fit. An affine fit per view also forgives haze and a
+wrong tint; it is given only as a diagnostic (``_affine_per_view``).
 
 Whole-image figures reward a blur: most pixels are the environment, and a smooth guess at it
 scores well. The ``object_`` figures are taken on the object's pixels only (where the truth
@@ -21,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from evcap.images import fit_color_correction, srgb
+from evcap.images import fit_color_correction, fit_gain, srgb
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -44,16 +45,24 @@ def ssim(a: np.ndarray, b: np.ndarray) -> float:
     return float(ssim_map(a, b).mean())
 
 
-def image_metrics(pred: np.ndarray, gt: np.ndarray, prefix: str) -> dict[str, float]:
-    """PSNR and SSIM, raw and color-corrected, of linear images [N, H, W, 3]."""
-    cc = fit_color_correction(pred, gt)
-    corrected = pred * cc[:, 0] + cc[:, 1]
-    a, b, c = srgb(pred), srgb(gt), srgb(corrected)
+def gain_fit(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """[3] the one gain per channel of linear renders [N, H, W, 3] against the truth, fitted by
+    least squares over the pixels of all views together (those of ``mask`` [N, H, W])."""
+    return fit_gain(pred, gt) if mask is None else fit_gain(pred[mask], gt[mask])
+
+
+def image_metrics(
+    pred: np.ndarray, gt: np.ndarray, prefix: str, gain: np.ndarray | None = None
+) -> dict[str, float]:
+    """PSNR and SSIM of linear images [N, H, W, 3], raw and after one gain per channel (fitted
+    over all of them unless given)."""
+    gain = gain_fit(pred, gt) if gain is None else gain
+    a, b, c = srgb(pred), srgb(gt), srgb(pred * gain)
     return {
         f"{prefix}_psnr": psnr(a, b),
         f"{prefix}_ssim": ssim(a, b),
-        f"{prefix}_psnr_cc": psnr(c, b),
-        f"{prefix}_ssim_cc": ssim(c, b),
+        f"{prefix}_psnr_gain": psnr(c, b),
+        f"{prefix}_ssim_gain": ssim(c, b),
     }
 
 
@@ -67,19 +76,31 @@ def constant_psnr(truth: np.ndarray) -> float:
 
 def object_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict[str, float]:
     """Figures of linear renders [N, H, W, 3] on the object's pixels (``mask`` [N, H, W]):
-    sRGB PSNR as rendered, PSNR and mean SSIM after a color correction fitted there, and the
-    PSNR of the best single constant color over all views; {} without an object."""
+    sRGB PSNR as rendered, PSNR and mean SSIM after one gain per channel fitted there over all
+    views, the PSNR of the best single constant color there, and (a diagnostic) the PSNR after
+    an affine fit per view; {} without an object."""
     if not mask.any():
         return {}
     truth = srgb(gt)
-    cc = fit_color_correction(pred[mask], gt[mask])
-    corrected = srgb(pred * cc[:, 0] + cc[:, 1])
+    corrected = srgb(pred * gain_fit(pred, gt, mask))
     return {
         "object_psnr": psnr(srgb(pred)[mask], truth[mask]),
-        "object_psnr_cc": psnr(corrected[mask], truth[mask]),
-        "object_ssim_cc": float(ssim_map(corrected, truth)[mask].mean()),
+        "object_psnr_gain": psnr(corrected[mask], truth[mask]),
+        "object_ssim_gain": float(ssim_map(corrected, truth)[mask].mean()),
         "object_psnr_constant": constant_psnr(truth[mask]),
+        "object_psnr_affine_per_view": affine_per_view_psnr(pred, gt, mask),
     }
+
+
+def affine_per_view_psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
+    """The mean over the views of the PSNR on ``mask`` after a gain and an offset per channel
+    fitted in each view alone: a diagnostic, never a result (it absorbs haze and tint)."""
+    scores = []
+    for p, g, m in zip(pred, gt, mask, strict=True):
+        if m.any():
+            cc = fit_color_correction(p[m], g[m])
+            scores.append(psnr(srgb(p[m] * cc[:, 0] + cc[:, 1]), srgb(g[m])))
+    return float(np.mean(scores))
 
 
 def blur_psnr(gt: np.ndarray) -> float:
@@ -154,29 +175,34 @@ def lpips_if_available(pred: np.ndarray, gt: np.ndarray) -> float | None:
 
 
 def surface_metrics(
-    pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, prefix: str, regions: dict | None = None
+    pred: np.ndarray,
+    gt: np.ndarray,
+    mask: np.ndarray,
+    prefix: str,
+    regions: dict | None = None,
+    gain: np.ndarray | None = None,
 ) -> dict[str, float]:
-    """PSNR and SSIM of a material map [N, H, W, 3] on the surface only (``mask`` [N, H, W]),
-    raw and after a per-channel affine correction fitted there; off the surface both images
-    are 0 for SSIM; the PSNR of the best single constant color there (``_psnr_constant``).
-    ``regions``: name -> mask, a PSNR (corrected) inside each."""
+    """PSNR and SSIM of a map [N, H, W, 3] on the surface only (``mask`` [N, H, W]), raw and
+    after one gain per channel (fitted there over all views unless given); off the surface
+    both images are 0 for SSIM; the PSNR of the best single constant color there
+    (``_psnr_constant``). ``regions``: name -> mask, a PSNR (corrected) inside each."""
     if not mask.any():
         return {}
-    cc = fit_color_correction(pred[mask], gt[mask])
-    corrected = np.where(mask[..., None], pred * cc[:, 0] + cc[:, 1], 0)
+    gain = gain_fit(pred, gt, mask) if gain is None else gain
+    corrected = np.where(mask[..., None], pred * gain, 0)
     raw = np.where(mask[..., None], pred, 0)
     truth = np.where(mask[..., None], gt, 0)
     a, b, c = srgb(raw), srgb(truth), srgb(corrected)
     out = {
         f"{prefix}_psnr": psnr(a[mask], b[mask]),
         f"{prefix}_ssim": ssim(a, b),
-        f"{prefix}_psnr_cc": psnr(c[mask], b[mask]),
-        f"{prefix}_ssim_cc": ssim(c, b),
+        f"{prefix}_psnr_gain": psnr(c[mask], b[mask]),
+        f"{prefix}_ssim_gain": ssim(c, b),
         f"{prefix}_psnr_constant": constant_psnr(b[mask]),
     }
     for name, region in (regions or {}).items():
         region = region & mask
         if region.any():
-            out[f"{prefix}_psnr_cc_{name}"] = psnr(c[region], b[region])
+            out[f"{prefix}_psnr_gain_{name}"] = psnr(c[region], b[region])
             out[f"{name}_share"] = float(region.sum() / mask.sum())
     return out

@@ -143,12 +143,19 @@ class RadianceField(torch.nn.Module):
     """Gaussians with view-dependent radiance, in front of a distant background."""
 
     def __init__(
-        self, gaussians: Gaussians, background: Background, backend: Backend = "cpu"
+        self,
+        gaussians: Gaussians,
+        background: Background,
+        backend: Backend = "cpu",
+        backdrop: tuple[float, float, float] | None = None,
     ) -> None:
         super().__init__()
         self.gaussians = gaussians
         self.background = background
         self.backend = backend
+        # a known background (config.known_background): seen in place of the learnt one
+        known = None if backdrop is None else torch.tensor(backdrop, dtype=torch.float32)
+        self.register_buffer("backdrop", known)
 
     def render(
         self,
@@ -184,7 +191,10 @@ class RadianceField(torch.nn.Module):
         cam = Camera(viewmat, grid.K, grid.width, grid.height)
         g = self.gaussians
         colors = g.radiance(cam.center, sh_degree)
-        bg = self.background(grid.directions(viewmat))
+        if self.backdrop is None:
+            bg = self.background(grid.directions(viewmat))
+        else:
+            bg = self.backdrop.expand(grid.height, grid.width, 3)
         if spread:
             z = g.means @ viewmat[2, :3] + viewmat[2, 3]
             colors = torch.cat([colors, (z * z)[:, None]], 1)
@@ -199,6 +209,12 @@ class RadianceField(torch.nn.Module):
             background=bg,
             backend=self.backend,
         )
+
+
+def background_alone(config: RadianceConfig, step: int) -> bool:
+    """Whether this step fits the background alone (config.background_first); never where the
+    background is known."""
+    return config.known_background is None and step <= config.background_first * config.iterations
 
 
 CHECK_EVERY = 10  # steps: the log's and the NaN check's (each check waits for the device)
@@ -255,7 +271,8 @@ def _new_field(
         distance = np.sqrt(data.volume.near * data.volume.far)
     footprint = distance / float(data.grid.K[0, 0])
     gaussians = Gaussians.random(points, config.sh_degree, g, config.init_size_px * footprint)
-    return RadianceField(gaussians, Background(config.background_size), backend).to(device)
+    background = Background(config.background_size)
+    return RadianceField(gaussians, background, backend, config.known_background).to(device)
 
 
 def on_points(
@@ -301,7 +318,8 @@ def train_radiance(
         derived = resume["data"]
         gaussians = Gaussians.from_state(resume["gaussians"])
         background = Background.from_faces(resume["background"])
-        field = RadianceField(gaussians, background, backend).to(device)
+        field = RadianceField(gaussians, background, backend, config.known_background)
+        field = field.to(device)
     extent = data.volume.radius
     optimizer = make_optimizer(field.gaussians, field.background, config, extent)
     densifier = Densifier(config, extent, data.volume)
@@ -556,7 +574,7 @@ def _losses(
     are given), and the loss of every window between two of them; (renders, total, its terms
     as tensors, to be read when logged)."""
     spread = config.spread_weight > 0
-    hidden = step <= config.background_first * config.iterations
+    hidden = background_alone(config, step)
     with timer("render"):
         if corrections is None:
             views = [data.viewmats()[int(f)] for f in frames]
@@ -583,11 +601,11 @@ def _terms(
     seen = [grid.sample(r.color[..., :3]) for r in renders]  # [H * W, 3], sensor pixels
     ev = windows_event_loss(data, config, frames, seen, timer)
     an = anchor_loss(torch.cat(seen), config.anchor_level)
-    total = ev + config.anchor_weight * an
+    total = ev if config.known_background is not None else ev + config.anchor_weight * an
     if corrections is not None:
         total = total + config.pose_smooth_weight * corrections.smoothness()
     terms = {"event": ev.detach(), "anchor": an.detach(), "normal": torch.zeros(())}
-    hidden = step <= config.background_first * config.iterations
+    hidden = background_alone(config, step)
     if config.quiet_tv_weight > 0:
         H, W = data.optics.height, data.optics.width
         _, counts = data.windows.log_change(int(frames[0]), int(frames[-1]))

@@ -33,7 +33,13 @@ from evcap.recon.config import (
     Stage,
     ZeroEvents,
 )
-from evcap.recon.evaluate import material_metrics, metrics, relit_metrics, render_views
+from evcap.recon.evaluate import (
+    material_metrics,
+    metrics,
+    relit_metrics,
+    render_views,
+    shown_gain,
+)
 from evcap.recon.export import (
     load_checkpoint,
     save_checkpoint,
@@ -49,12 +55,7 @@ from evcap.recon.material import (
     resume_misfit,
     train_material,
 )
-from evcap.recon.metrics import (
-    fit_color_correction,
-    image_metrics,
-    normal_mae_deg,
-    object_metrics,
-)
+from evcap.recon.metrics import image_metrics, normal_mae_deg, object_metrics
 from evcap.recon.optics import SensorOptics
 from evcap.recon.radiance import (
     Fit,
@@ -485,9 +486,10 @@ def _stage_radiance(
     views = render_views(field, poses_of(track), data.optics, device)
     scored = bool(truth.maps())
     figures = metrics(views, truth) if scored else {}
-    cc = None if truth.radiance is None else fit_color_correction(views["radiance"], truth.radiance)
     write_ply(field, out.ply)
-    write_views(views, out, "radiance", "test" if scored else "path", cc)
+    write_views(
+        views, out, "radiance", "test" if scored else "path", shown_gain(views["radiance"], truth)
+    )
     save_checkpoint(field, cfg.to_dict(config), out.checkpoint("radiance"))
     if not fit.interrupted:
         path.unlink(missing_ok=True)
@@ -514,15 +516,22 @@ def _material_outputs(
     if scored:
         figures.update(material_metrics(views, truth, before))
     split = "test" if scored else "path"
-    cc = None if truth.radiance is None else fit_color_correction(views["radiance"], truth.radiance)
-    write_views(views, out, "material", split, cc)
+    write_views(views, out, "material", split, shown_gain(views["radiance"], truth))
     light = mip_chain(field.light.radiance_faces().detach())
     write_image(environment_image(light), out.environment)
     if environment is not None:
         new = light_from_image(environment, light[0].shape[-1], device)
         relit = render_views(field, poses, optics, device, new)
-        if truth.relit_radiance is not None:
-            figures.update(relit_metrics(relit["radiance"], truth, before))
+        gain = shown_gain(views["radiance"], truth)
+        if truth.relit_radiance is not None and gain is not None:
+            # the new light in the model's units (its radiance is the truth's over the gain),
+            # the render taken back by the same gain: nothing fitted to the relit truth
+            k = torch.as_tensor(gain, dtype=torch.float32, device=device)[None, :, None, None]
+            scaled = render_views(field, poses, optics, device, [f / k for f in new])
+            corrected = scaled["radiance"] * gain
+            figures.update(relit_metrics(relit["radiance"], corrected, truth, before))
+        out.renders("relit").mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(out.views_values("relit", split), radiance=relit["radiance"])
         for i, image in enumerate(relit["radiance"]):
             write_image(image, out.view_image("relit", split, i, "radiance"))
         write_image(environment_image(new), out.relit_environment)

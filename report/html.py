@@ -517,9 +517,9 @@ def _maps_section(folder: ReconstructionFolder, s: Session) -> str:
     )
     if truth is not None and truth.radiance is not None:
         intro += (
-            " Radiance is shown after a per-channel gain and offset fitted to the truth "
-            "(events give radiance only up to a gain per channel) on the object's pixels where "
-            "the truth has depth, as object_psnr_cc is."
+            " Radiance is shown after one gain per channel (all events leave undetermined) "
+            "fitted to the truth over all views on the object's pixels where the truth has "
+            "depth, as object_psnr_gain is."
         )
     count = min([MAX_VIEWS, *(len(v["radiance"]) for _, _, v in stages if "radiance" in v)])
     tables = [_view_table(i, stages, truth) for i in range(count)]
@@ -536,7 +536,7 @@ MAP_COLUMNS = (
 
 
 def _view_table(i: int, stages: list, truth: TruthViews | None) -> str:
-    from evcap.images import fit_color_correction
+    from evcap.images import fit_gain
 
     known = truth.maps() if truth is not None else {}
     rows = []
@@ -554,12 +554,11 @@ def _view_table(i: int, stages: list, truth: TruthViews | None) -> str:
             if key == "radiance" and truth is not None and truth.radiance is not None:
                 pred, gt = views["radiance"], truth.radiance
                 if pred.shape == gt.shape and np.isfinite(pred).all():
-                    # fitted where object_psnr_cc is, on the object, when the truth says where
+                    # fitted where object_psnr_gain is, on the object, when the truth says where
                     surface = truth.object_mask()
                     if surface is not None and surface.shape == pred.shape[:-1] and surface.any():
                         pred, gt = pred[surface], gt[surface]
-                    cc = fit_color_correction(pred, gt)
-                    value = value * cc[:, 0] + cc[:, 1]
+                    value = value * fit_gain(pred, gt)
             images[key] = _map_image(key, value, lo, hi)
         rows.append((label, images))
     if truth is not None and len(truth) > i:
@@ -656,8 +655,10 @@ def _metrics_section(result: ReconstructionResult) -> str:
         if lines:
             body += f'<tr><th class="group" colspan="3">{escape(group)}</th></tr>' + "".join(lines)
     note = (
-        "<p>PSNR and SSIM compare the sRGB images with the truth; color-corrected: after a "
-        "per-channel gain and offset fitted by least squares.</p>"
+        "<p>PSNR and SSIM compare the sRGB images with the truth, raw first; after one gain: "
+        "one gain per color channel, fitted once by least squares (linear radiance) over the "
+        "scored pixels of all held-out views; relit views keep the gain of the un-relit fit. "
+        "The affine fit per view is a diagnostic only.</p>"
     )
     return note + f"<table><tr><th>metric</th><th>value</th><th>unit</th></tr>{body}</table>"
 
@@ -706,9 +707,9 @@ def _progress_section(result: ReconstructionResult) -> str:
         series = [
             Series(label, seconds, np.array([_float(h.get(key)) for h in history]), color, dashed)
             for key, label, color, dashed in (
-                ("object_psnr_cc", "object, color-corrected", COLORS[0], False),
+                ("object_psnr_gain", "object, after one gain", COLORS[0], False),
                 ("object_psnr_constant", "object: a constant color", COLORS[0], True),
-                ("render_psnr_cc", "whole image, color-corrected", COLORS[1], False),
+                ("render_psnr_gain", "whole image, after one gain", COLORS[1], False),
             )
             if any(key in h for h in history)
         ]

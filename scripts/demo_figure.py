@@ -1,5 +1,5 @@
 """The README's figure of the demo: each held-out view's truth beside what the demo recovered
-(radiance after the color correction object_psnr_cc uses, normals, depth; stage II's base
+(radiance after the one gain per channel object_psnr_gain uses, normals, depth; stage II's base
 color and the view relit under the truth's second light, as written), drawn as the report
 draws them.
 
@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from evcap.images import fit_color_correction
+from evcap.recon.evaluate import shown_gain
 from evcap.records import GroundTruth
 from evcap.records.reconstruction_folder import ReconstructionFolder
 from evcap.report.images import depth_image, depth_range, normal_image, srgb8
@@ -27,15 +27,14 @@ def main(demo: Path, out: Path) -> None:
         truth = GroundTruth.read(s).held_out_views()
     stage_one = dict(np.load(folder.views_values("radiance", "test")))
     stage_two = dict(np.load(folder.views_values("material", "test")))
-    mask = truth.object_mask()
-    cc = fit_color_correction(stage_one["radiance"][mask], truth.radiance[mask])
+    gain = shown_gain(stage_one["radiance"], truth)
     rows = []
     for i in range(len(truth)):
         lo, hi = depth_range(truth.depth[i], stage_one["depth"][i])
         rows.append(
             [
                 srgb8(truth.radiance[i]),
-                srgb8(stage_one["radiance"][i] * cc[:, 0] + cc[:, 1]),
+                srgb8(stage_one["radiance"][i] * gain),
                 normal_image(truth.normal[i]),
                 normal_image(stage_one["normal"][i]),
                 depth_image(truth.depth[i], lo, hi),

@@ -53,10 +53,10 @@ def test_two_done_and_the_corrupt_one_failed_with_its_message(in_process):
     assert rows["broken"]["steps"]["report"]["status"] == "not run"
     for name in ("left", "right"):
         assert (in_process / name / "report.html").exists()
-        assert rows[name]["figures"]["object_psnr_cc"] > 0
+        assert rows[name]["figures"]["object_psnr_gain"] > 0
     with (in_process / "summary.csv").open() as f:
         table = {r["name"]: r for r in csv.DictReader(f)}
-    assert table["broken"]["status"] == "failed" and float(table["left"]["object_psnr_cc"]) > 0
+    assert table["broken"]["status"] == "failed" and float(table["left"]["object_psnr_gain"]) > 0
     page = (in_process / "index.html").read_text()
     assert 'href="left/report.html"' in page and "broken.h5" in page
 

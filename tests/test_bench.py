@@ -113,7 +113,7 @@ def test_ablation_shares_a_kept_stage_one(session, monkeypatch, tmp_path):
     assert calls == ["material", "material"]  # no stage I fitted
     written = json.loads((tmp_path / "ablation.json").read_text())
     first = json.loads((kept / "metrics.json").read_text())
-    assert written["stage_one"][session.stem]["object_psnr_cc"] == first["object_psnr_cc"]
+    assert written["stage_one"][session.stem]["object_psnr_gain"] == first["object_psnr_gain"]
     assert [r["variant"] for r in written["runs"]] == ["full", "no edge TV"]
 
 
@@ -146,7 +146,7 @@ def test_steps_full_runs_the_whole_stage_and_scores_it(session, monkeypatch, tmp
     assert figures["resolution"] == 0.2
     assert figures["stage_1_steps_per_min"] > 0
     assert figures["stage_1_training_steps_per_min"] >= figures["stage_1_steps_per_min"]
-    assert figures["object_psnr_cc"] > 0 and figures["object_psnr_constant"] > 0
+    assert figures["object_psnr_gain"] > 0 and figures["object_psnr_constant"] > 0
 
 
 def test_steps_runs_another_checkout_in_a_process_of_its_own(session):

@@ -201,7 +201,7 @@ OUT_NAMES = {
     "material.pt",
     "-state.pt",
 }
-OUT_ENDINGS = (".pt", "_radiance.png", "_radiance_cc.png", "_normal.png", "_depth.png")
+OUT_ENDINGS = (".pt", "_radiance.png", "_radiance_gain.png", "_normal.png", "_depth.png")
 
 
 def out_file_names(source: str) -> list[tuple[int, str]]:
@@ -283,6 +283,6 @@ def test_the_figures_a_user_is_shown_are_listed_once(path):
 
 
 def test_the_figure_rule_catches_a_list_of_its_own():
-    assert figure_lists('FIGURES = ("object_psnr_cc", "normal_mae_deg", "depth_rel_err")')
-    labels = '{"object_psnr_cc": "object", "normal_mae_deg": "normals", "depth_rel_err": "depth"}'
+    assert figure_lists('FIGURES = ("object_psnr_gain", "normal_mae_deg", "depth_rel_err")')
+    labels = '{"object_psnr_gain": "object", "normal_mae_deg": "normals", "depth_rel_err": "depth"}'
     assert figure_lists(labels)

@@ -28,7 +28,7 @@ def pipeline(root, runs: list[str], settings=None, fail: str = "", stop: str = "
             if name == stop:
                 return None
             (root / name).write_text(name)
-            return f"made {name}", {"object_psnr_cc": 20.0}
+            return f"made {name}", {"object_psnr_gain": 20.0}
 
         return run
 
@@ -42,7 +42,7 @@ def test_a_rerun_skips_what_is_done_and_redoes_what_follows_a_step_run_again(tmp
     assert runs == ["a", "b", "c"] and [r.status for r in first] == ["done"] * 3
     state = json.loads((tmp_path / "pipeline.json").read_text())
     assert list(state["done"]) == ["a", "b", "c"] and state["settings"]["preset"] == "fast"
-    assert state["done"]["b"]["figures"] == {"object_psnr_cc": 20.0}
+    assert state["done"]["b"]["figures"] == {"object_psnr_gain": 20.0}
 
     runs.clear()
     again = pipeline(tmp_path, runs).run()

@@ -31,8 +31,8 @@ Training = Literal["radiance", "material"]  # stage I, stage II
 Section = Literal["reconstruct", "radiance", "material"]
 Renders = Literal["radiance", "material", "relit"]  # stage I's, stage II's, relit views
 Split = Literal["test", "path"]  # the held-out views, or views along the camera path
-# a rendered view's maps, each a PNG (radiance_cc: after the color correction)
-ViewMap = Literal["radiance", "radiance_cc", "depth", "normal", "base_color", "roughness"]
+# a rendered view's maps, each a PNG (radiance_gain: after the one gain per channel)
+ViewMap = Literal["radiance", "radiance_gain", "depth", "normal", "base_color", "roughness"]
 
 CONFIG = "config.toml"
 METRICS = "metrics.json"
@@ -135,9 +135,9 @@ class ReconstructionFolder:
 
     def shown_views(self) -> list[Path]:
         """The rendered views a page shows: stage II's render where there is one, else stage
-        I's radiance color-corrected where it was, held-out views first; else stage I's
+        I's radiance after its gain where it was, held-out views first; else stage I's
         radiance as rendered."""
-        for kind, map in (("material", "radiance"), ("radiance", "radiance_cc")):
+        for kind, map in (("material", "radiance"), ("radiance", "radiance_gain")):
             for split in ("test", "path"):
                 first = self.view_image(kind, split, 0, map)  # type: ignore[arg-type]
                 if first.exists():
@@ -173,7 +173,7 @@ class ReconstructionFolder:
     # -- settings and results ------------------------------------------------------------------
 
     def write_config(self, sections: dict[str, dict]) -> None:
-        """The settings as a flat TOML of scalars, one table per section."""
+        """The settings as a flat TOML of scalars (and lists of numbers), one table per section."""
         lines = []
         for section, values in sections.items():
             lines.append(f"[{section}]")
@@ -182,6 +182,8 @@ class ReconstructionFolder:
                     lines.append(f"{k} = {str(v).lower()}")
                 elif isinstance(v, int | float):
                     lines.append(f"{k} = {v!r}")
+                elif isinstance(v, list | tuple) and all(isinstance(x, int | float) for x in v):
+                    lines.append(f"{k} = [{', '.join(repr(x) for x in v)}]")
                 elif v is not None:
                     lines.append(f"{k} = {json.dumps(str(v))}")
             lines.append("")

@@ -20,22 +20,22 @@ STAGE_I, STAGE_II, RUN = "stage I (radiance)", "stage II (material)", "run"
 # summary), in this order; metrics.json and the report hold them all
 SHOWN = (
     "object_psnr",
-    "object_psnr_cc",
+    "object_psnr_gain",
     "object_psnr_constant",
     "normal_mae_deg",
     "depth_rel_err",
     "depth_within_5pct",
     "background_clear",
-    "render_psnr_cc",
+    "render_psnr_gain",
     "blur_psnr",
-    "base_color_psnr_cc",
+    "base_color_psnr_gain",
     "base_color_psnr_constant",
-    "base_color_psnr_cc_baseline",
+    "base_color_psnr_gain_baseline",
     "roughness_mae",
-    "pbr_render_psnr_cc",
-    "relit_object_psnr_cc",
+    "pbr_render_psnr_gain",
+    "relit_object_psnr_gain",
     "relit_object_psnr_constant",
-    "relit_object_psnr_cc_baseline",
+    "relit_object_psnr_gain_baseline",
 )
 
 
@@ -46,20 +46,25 @@ def _figure(name: str, unit: str, stage: str):
 @dataclass
 class Figures:
     """The accuracy figures on the held-out views (None: not measured, e.g. no truth; NaN:
-    measured without a number, e.g. LPIPS without its weights). Images
-    are compared in sRGB; ``_cc``: after a per-channel gain and offset fitted by least squares;
-    ``object_``: on the object's pixels only."""
+    measured without a number, e.g. LPIPS without its weights). Images are compared in sRGB,
+    raw first; ``_gain``: after one gain per color channel fitted once by least squares (linear
+    radiance) over the scored pixels of all held-out views, relit views with the gain of their
+    un-relit fit; ``object_``: on the object's pixels only; ``_affine_per_view``: a diagnostic,
+    never a result."""
 
     object_psnr: float | None = _figure("object PSNR, as rendered", "dB", STAGE_I)
-    object_psnr_cc: float | None = _figure("object PSNR, color-corrected", "dB", STAGE_I)
+    object_psnr_gain: float | None = _figure("object PSNR, after one gain", "dB", STAGE_I)
     object_psnr_constant: float | None = _figure(
         "object PSNR of the best constant color (no object)", "dB", STAGE_I
     )
-    object_ssim_cc: float | None = _figure("object SSIM, color-corrected", "", STAGE_I)
+    object_psnr_affine_per_view: float | None = _figure(
+        "object PSNR after an affine fit per view (diagnostic only)", "dB", STAGE_I
+    )
+    object_ssim_gain: float | None = _figure("object SSIM, after one gain", "", STAGE_I)
     render_psnr: float | None = _figure("render PSNR", "dB", STAGE_I)
     render_ssim: float | None = _figure("render SSIM", "", STAGE_I)
-    render_psnr_cc: float | None = _figure("render PSNR, color-corrected", "dB", STAGE_I)
-    render_ssim_cc: float | None = _figure("render SSIM, color-corrected", "", STAGE_I)
+    render_psnr_gain: float | None = _figure("render PSNR, after one gain", "dB", STAGE_I)
+    render_ssim_gain: float | None = _figure("render SSIM, after one gain", "", STAGE_I)
     blur_psnr: float | None = _figure(
         "PSNR of the truth blurred by 25 px (whole image)", "dB", STAGE_I
     )
@@ -77,42 +82,46 @@ class Figures:
     normal_mae_deg: float | None = _figure("normal error, mean angle", "deg", STAGE_II)
     pbr_render_psnr: float | None = _figure("shaded render PSNR", "dB", STAGE_II)
     pbr_render_ssim: float | None = _figure("shaded render SSIM", "", STAGE_II)
-    pbr_render_psnr_cc: float | None = _figure(
-        "shaded render PSNR, color-corrected", "dB", STAGE_II
+    pbr_render_psnr_gain: float | None = _figure(
+        "shaded render PSNR, after one gain", "dB", STAGE_II
     )
-    pbr_render_ssim_cc: float | None = _figure("shaded render SSIM, color-corrected", "", STAGE_II)
+    pbr_render_ssim_gain: float | None = _figure("shaded render SSIM, after one gain", "", STAGE_II)
     base_color_psnr: float | None = _figure("base color PSNR", "dB", STAGE_II)
     base_color_ssim: float | None = _figure("base color SSIM", "", STAGE_II)
-    base_color_psnr_cc: float | None = _figure("base color PSNR, color-corrected", "dB", STAGE_II)
-    base_color_ssim_cc: float | None = _figure("base color SSIM, color-corrected", "", STAGE_II)
+    base_color_psnr_gain: float | None = _figure("base color PSNR, after one gain", "dB", STAGE_II)
+    base_color_ssim_gain: float | None = _figure("base color SSIM, after one gain", "", STAGE_II)
     base_color_psnr_constant: float | None = _figure(
         "base color PSNR of the best constant color", "dB", STAGE_II
     )
-    base_color_psnr_cc_baseline: float | None = _figure(
-        "stage I's radiance taken as the base color, PSNR color-corrected", "dB", STAGE_II
+    base_color_psnr_gain_baseline: float | None = _figure(
+        "stage I's radiance taken as the base color, PSNR after one gain", "dB", STAGE_II
     )
-    base_color_psnr_cc_shadow: float | None = _figure("base color PSNR in shadows", "dB", STAGE_II)
+    base_color_psnr_gain_shadow: float | None = _figure(
+        "base color PSNR in shadows", "dB", STAGE_II
+    )
     shadow_share: float | None = _figure("surface in shadow", "fraction", STAGE_II)
-    base_color_psnr_cc_bleeding: float | None = _figure(
+    base_color_psnr_gain_bleeding: float | None = _figure(
         "base color PSNR where color bleeds", "dB", STAGE_II
     )
     bleeding_share: float | None = _figure("surface with color bleeding", "fraction", STAGE_II)
     roughness_mae: float | None = _figure("roughness error, mean absolute", "", STAGE_II)
     relit_psnr: float | None = _figure("relit render PSNR", "dB", STAGE_II)
     relit_ssim: float | None = _figure("relit render SSIM", "", STAGE_II)
-    relit_psnr_cc: float | None = _figure("relit render PSNR, color-corrected", "dB", STAGE_II)
-    relit_ssim_cc: float | None = _figure("relit render SSIM, color-corrected", "", STAGE_II)
+    relit_psnr_gain: float | None = _figure("relit render PSNR, after one gain", "dB", STAGE_II)
+    relit_ssim_gain: float | None = _figure("relit render SSIM, after one gain", "", STAGE_II)
     relit_object_psnr: float | None = _figure("relit object PSNR", "dB", STAGE_II)
     relit_object_ssim: float | None = _figure("relit object SSIM", "", STAGE_II)
-    relit_object_psnr_cc: float | None = _figure(
-        "relit object PSNR, color-corrected", "dB", STAGE_II
+    relit_object_psnr_gain: float | None = _figure(
+        "relit object PSNR, after one gain", "dB", STAGE_II
     )
-    relit_object_ssim_cc: float | None = _figure("relit object SSIM, color-corrected", "", STAGE_II)
+    relit_object_ssim_gain: float | None = _figure(
+        "relit object SSIM, after one gain", "", STAGE_II
+    )
     relit_object_psnr_constant: float | None = _figure(
         "relit object PSNR of the best constant color", "dB", STAGE_II
     )
-    relit_object_psnr_cc_baseline: float | None = _figure(
-        "the views never relit, object PSNR against the relit truth, color-corrected",
+    relit_object_psnr_gain_baseline: float | None = _figure(
+        "the views never relit, object PSNR against the relit truth, after one gain",
         "dB",
         STAGE_II,
     )

@@ -142,7 +142,7 @@ def test_reconstruct_refines_estimated_poses_and_writes_them(simulated, tmp_path
     assert refined.source == "evcap reconstruct: refined (evcap poses (filter frames, pycolmap))"
     assert refined.start == truth.start and refined.end == truth.end
     assert 0 < refined.notes["refinement_max_deg"] < 5
-    assert np.isfinite(result.figures.object_psnr_cc)
+    assert np.isfinite(result.figures.object_psnr_gain)
     material = reconstruct(
         session, out, preset="tiny", stage="material", material_iterations=2, write_poses=True
     )

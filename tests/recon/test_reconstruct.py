@@ -19,7 +19,7 @@ from evcap.recon import config as cfg
 from evcap.recon.export import read_ply_header
 from evcap.recon.radiance import RadianceField, load_training_data, new_field, train_radiance
 from evcap.recon.reconstruct import reconstruct
-from evcap.records import Calibration, GroundTruth
+from evcap.records import Calibration, GroundTruth, ReconstructionFolder
 from evcap.session import Session, SessionWriter
 from evcap.sim.scene import load_scene
 from evcap.sim.simulate import simulate
@@ -91,15 +91,15 @@ def test_writes_every_output(color_result):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics == result.to_json()
     for key in (
-        "object_psnr_cc",
-        "object_ssim_cc",
+        "object_psnr_gain",
+        "object_ssim_gain",
         "object_psnr_constant",
         "blur_psnr",
         "depth_rel_err",
         "render_psnr",
         "render_ssim",
-        "render_psnr_cc",
-        "render_ssim_cc",
+        "render_psnr_gain",
+        "render_ssim_gain",
         "depth_abs_err",
         "normal_mae_deg",
         "seconds",
@@ -108,10 +108,10 @@ def test_writes_every_output(color_result):
         "device",
         "base_color_psnr",
         "base_color_ssim",
-        "base_color_psnr_cc",
-        "base_color_ssim_cc",
+        "base_color_psnr_gain",
+        "base_color_ssim_gain",
         "roughness_mae",
-        "pbr_render_psnr_cc",
+        "pbr_render_psnr_gain",
         "radiance_normal_mae_deg",
     ):
         assert key in metrics, key
@@ -144,7 +144,7 @@ def test_writes_every_output(color_result):
     history = metrics["history"]
     assert [h["step"] for h in history] == [5, 10, 15, 20, 25, 30]
     assert all(np.diff([h["seconds"] for h in history]) > 0)
-    for key in ("render_psnr_cc", "object_psnr_cc", "object_psnr_constant", "normal_mae_deg"):
+    for key in ("render_psnr_gain", "object_psnr_gain", "object_psnr_constant", "normal_mae_deg"):
         assert all(np.isfinite(h[key]) for h in history), key
     # an isolated sphere: nothing to shadow it, nothing to bleed onto it
     assert metrics["effects"] == {
@@ -159,7 +159,7 @@ def test_writes_every_output(color_result):
     assert variation.keys() == {"neither", "visibility+indirect"}
     assert min(variation, key=variation.get) == "neither"
     renders = sorted(p.name for p in (out / "renders").iterdir())
-    for kind in ("radiance", "radiance_cc", "depth", "normal"):
+    for kind in ("radiance", "radiance_gain", "depth", "normal"):
         assert any(kind in name and name.endswith(".png") for name in renders), kind
     material = sorted(p.name for p in (out / "renders" / "material").iterdir())
     for kind in ("radiance", "base_color", "roughness", "normal", "depth"):
@@ -192,12 +192,76 @@ def test_material_stage_resumes_from_the_checkpoint(color_session, color_result,
     assert [x["step"] for x in result.training_log["material"]] == [4]
     # without --relight, the held-out views are relit by the truth's second light and scored
     figures = result.figures
-    assert first.figures.relit_psnr is None and np.isfinite(figures.relit_object_psnr_cc)
+    assert first.figures.relit_psnr is None and np.isfinite(figures.relit_object_psnr_gain)
     # beside them, what no decomposition and no relighting reach
-    assert np.isfinite(figures.relit_object_psnr_cc_baseline)
-    assert np.isfinite(figures.base_color_psnr_cc_baseline)
+    assert np.isfinite(figures.relit_object_psnr_gain_baseline)
+    assert np.isfinite(figures.base_color_psnr_gain_baseline)
     with pytest.raises(InputError, match="no stage-I checkpoint"):
         reconstruct(color_session, tmp_path / "empty", preset="tiny", stage="material")
+
+
+def least_squares_gain(fit_on: np.ndarray, fit_to: np.ndarray) -> np.ndarray:
+    """[3] the gain per channel of pixels [P, 3] onto others, by least squares, computed here
+    without recon/metrics.py."""
+    p, t = fit_on.astype(np.float64), fit_to.astype(np.float64)
+    return np.array([np.linalg.lstsq(p[:, [c]], t[:, c], rcond=None)[0][0] for c in range(3)])
+
+
+def srgb_psnr(pred: np.ndarray, truth: np.ndarray) -> float:
+    def encode(x):
+        x = np.clip(x, 0, 1)
+        return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
+
+    return float(10 * np.log10(1 / np.mean((encode(pred) - encode(truth)) ** 2)))
+
+
+def test_the_corrected_figures_are_one_gain_per_channel_over_all_views(
+    color_session, color_result, tmp_path
+):
+    """metrics.json's corrected object, base color and relit figures: one gain per channel
+    fitted once over the scored pixels of all held-out views; the relit views under the new
+    light brought into the model's units by the gain of the render under the first light,
+    and taken back by it."""
+    from evcap.recon.evaluate import render_views
+    from evcap.recon.export import load_material_checkpoint
+    from evcap.recon.material import light_from_image
+    from evcap.recon.optics import SensorOptics
+
+    out = tmp_path / "again"
+    shutil.copytree(color_result[0], out)
+    reconstruct(color_session, out, preset="tiny", stage="material", overwrite=True)
+    metrics = json.loads((out / "metrics.json").read_text())
+    with Session.open(color_session) as s:
+        gt = GroundTruth.read(s)
+        optics = SensorOptics.from_session(s)
+    truth = gt.held_out_views()
+    obj, surface = truth.object_mask(), np.linalg.norm(truth.normal, axis=-1) > 0.5
+    folder = ReconstructionFolder(out)
+    stage_1 = np.load(folder.views_values("radiance", "test"))["radiance"][obj]
+    stage_2 = np.load(folder.views_values("material", "test"))
+    seen, base, true_base = (
+        truth.radiance[obj],
+        stage_2["base_color"][surface],
+        truth.base_color[surface],
+    )
+    gain = least_squares_gain(stage_2["radiance"][obj], seen)
+    field = load_material_checkpoint(folder.checkpoint("material"))
+    light = light_from_image(gt.relight_environment, field.light.faces.shape[-1])
+    k = torch.as_tensor(gain, dtype=torch.float32)[None, :, None, None]
+    relit = render_views(field, truth.T_world_cam, optics, light=[f / k for f in light])
+    expected = {
+        "object_psnr_gain": srgb_psnr(stage_1 * least_squares_gain(stage_1, seen), seen),
+        "base_color_psnr_gain": srgb_psnr(base * least_squares_gain(base, true_base), true_base),
+        "relit_object_psnr_gain": srgb_psnr(
+            relit["radiance"][obj] * gain, truth.relit_radiance[obj]
+        ),
+        "relit_object_psnr_gain_baseline": srgb_psnr(
+            stage_1 * least_squares_gain(stage_1, seen), truth.relit_radiance[obj]
+        ),
+    }
+    for key, value in expected.items():
+        assert metrics[key] == pytest.approx(value, abs=1e-3), key
+    assert metrics["object_psnr"] < metrics["object_psnr_gain"]  # raw first, and not the same
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
@@ -223,8 +287,8 @@ def test_both_stages_run_on_a_cuda_gpu(color_session, environment, tmp_path, bac
     )
     assert (result.device, result.backend) == ("cuda", backend)
     assert read_ply_header(tmp_path / "gaussians.ply")[0] == result.gaussians
-    assert np.isfinite(result.figures.object_psnr_cc)
-    assert np.isfinite(result.figures.base_color_psnr_cc)
+    assert np.isfinite(result.figures.object_psnr_gain)
+    assert np.isfinite(result.figures.base_color_psnr_gain)
     assert len(list((tmp_path / "renders" / "relit").glob("test_*.png"))) > 0
 
 
@@ -254,7 +318,7 @@ def test_learns_the_scene_from_events_alone(color_session, tmp_path):
     result = reconstruct(color_session, tmp_path, preset="tiny", resolution=1.0, stage="radiance")
     # the best constant image scores 16.1 dB after color correction on this scene; this run
     # scored 19.0 dB (depth error 0.197, at about 2.2 units) when it was written
-    assert result.figures.render_psnr_cc > 18
+    assert result.figures.render_psnr_gain > 18
     assert result.figures.depth_abs_err < 0.25
 
 
@@ -295,8 +359,8 @@ def test_mono_session(tiny_scene, tmp_path_factory):
     session = simulated(tiny_scene, tmp_path_factory, "MONO")
     out = tmp_path_factory.mktemp("mono")
     result = reconstruct(session, out, preset="tiny", iterations=40, material_iterations=5)
-    assert result.iterations == 40 and np.isfinite(result.figures.render_psnr_cc)
-    assert np.isfinite(result.figures.base_color_psnr_cc)
+    assert result.iterations == 40 and np.isfinite(result.figures.render_psnr_gain)
+    assert np.isfinite(result.figures.base_color_psnr_gain)
 
 
 def test_cli_uncalibrated_session_is_a_clear_error(tmp_path, sample_aedat4):
@@ -368,7 +432,7 @@ def test_cli_writes_a_reconstruction(color_session, tmp_path):
     assert radiance["refractory_bound"] and radiance["noise_filter_ms"] == 5
     assert not metrics["effects"]["tv"] and not metrics["effects"]["anchor"]
     assert metrics["effects"]["distill"]
-    assert "render_psnr_cc" in r.stdout and "base_color_psnr_cc" in r.stdout
+    assert "render_psnr_gain" in r.stdout and "base_color_psnr_gain" in r.stdout
 
 
 def test_the_papers_run_completes_both_stages(color_session, tmp_path):
@@ -385,7 +449,7 @@ def test_the_papers_run_completes_both_stages(color_session, tmp_path):
     assert metrics["gaussians"] > 50_000  # the paper's start, not pruned away in 20 steps
     config = tomllib.loads((out / "config.toml").read_text())
     assert config["radiance"]["sh_degree"] == 3 and config["material"]["edge_frames"] == 200
-    assert np.isfinite(metrics["base_color_psnr_cc"])
+    assert np.isfinite(metrics["base_color_psnr_gain"])
 
 
 def test_stage_one_settings_over_the_preset(color_session, tmp_path):

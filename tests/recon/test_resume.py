@@ -83,7 +83,7 @@ def test_stage_two_goes_on_without_running_stage_one_again(
     for name, value in material(whole).items():
         assert torch.equal(material(tmp_path)[name], value), name
     metrics = json.loads((tmp_path / "metrics.json").read_text())
-    assert metrics["base_color_psnr_cc"] == pytest.approx(expected.figures.base_color_psnr_cc)
+    assert metrics["base_color_psnr_gain"] == pytest.approx(expected.figures.base_color_psnr_gain)
 
 
 def test_a_stage_two_state_that_does_not_fit_is_refused_by_name(

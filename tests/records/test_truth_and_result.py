@@ -85,7 +85,7 @@ def test_no_truth_is_said_so(tmp_path):
 def test_result_round_trip(tmp_path):
     result = ReconstructionResult(
         views="held-out test views",
-        figures=Figures(object_psnr_cc=21.5, normal_mae_deg=float("nan")),
+        figures=Figures(object_psnr_gain=21.5, normal_mae_deg=float("nan")),
         iterations=100,
         seconds=12.5,
         effects={"visibility": True},
@@ -93,13 +93,13 @@ def test_result_round_trip(tmp_path):
     )
     ReconstructionFolder(tmp_path).write_result(result)
     data = json.loads((tmp_path / "metrics.json").read_text())
-    assert data["object_psnr_cc"] == 21.5 and data["normal_mae_deg"] is None
+    assert data["object_psnr_gain"] == 21.5 and data["normal_mae_deg"] is None
     back = ReconstructionFolder(tmp_path).read_result()
-    assert back.figures.object_psnr_cc == 21.5 and math.isnan(back.figures.normal_mae_deg)
+    assert back.figures.object_psnr_gain == 21.5 and math.isnan(back.figures.normal_mae_deg)
     assert back.figures.depth_rel_err is None
     assert back.iterations == 100 and back.training_log == result.training_log
-    assert Figures.describe("object_psnr_cc") == (
-        "object PSNR, color-corrected",
+    assert Figures.describe("object_psnr_gain") == (
+        "object PSNR, after one gain",
         "dB",
         "stage I (radiance)",
     )

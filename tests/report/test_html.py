@@ -126,18 +126,18 @@ def make_reconstruction(out: Path, session: Path) -> Path:
         "[material]\nedge_slice_ms = 10.0\n"
     )
     metrics = {
-        "object_psnr_cc": 19.25,
+        "object_psnr_gain": 19.25,
         "object_psnr_constant": 17.0,
         "render_psnr": float("nan"),
-        "render_psnr_cc": 21.5,
+        "render_psnr_gain": 21.5,
         "lpips": None,
         "gaussians": 1200,
         "effects": {"visibility": False, "tv": True},
         "views": "held-out test views",
         "history": [
-            {"step": 10, "seconds": 1.0, "render_psnr_cc": 15.0, "render_psnr": 12.0},
-            {"step": 20, "seconds": 2.0, "render_psnr_cc": float("nan"), "render_psnr": 13.0},
-            {"step": 30, "seconds": 3.0, "render_psnr_cc": 19.0, "render_psnr": 14.0},
+            {"step": 10, "seconds": 1.0, "render_psnr_gain": 15.0, "render_psnr": 12.0},
+            {"step": 20, "seconds": 2.0, "render_psnr_gain": float("nan"), "render_psnr": 13.0},
+            {"step": 30, "seconds": 3.0, "render_psnr_gain": 19.0, "render_psnr": 14.0},
         ],
     }
     log = [StepLog(s, 1 / s, 0.8 / s, 0.01, 0.1, 500, s * 0.1) for s in range(10, 60, 10)]
@@ -218,8 +218,8 @@ def test_nan_and_missing_metrics_show_na(page):
     _, text = page
     assert re.search(r"<td>render PSNR</td><td[^>]*>n/a</td>", text)
     assert re.search(r"<td>LPIPS \(AlexNet\)</td><td[^>]*>n/a</td>", text)
-    assert re.search(r"<td>render PSNR, color-corrected</td><td[^>]*>21.5</td>", text)
-    assert re.search(r"<td>object PSNR, color-corrected</td><td[^>]*>19.25</td>", text)
+    assert re.search(r"<td>render PSNR, after one gain</td><td[^>]*>21.5</td>", text)
+    assert re.search(r"<td>object PSNR, after one gain</td><td[^>]*>19.25</td>", text)
     assert "RMS reprojection error</th><td>n/a px" in text
     assert "visibility: off, tv: on" in text
 

@@ -128,5 +128,5 @@ def test_a_scene_laid_out_as_the_release_through_the_commands(write_nerf_dataset
     assert r.returncode == 0, r.stderr
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["views"] == "held-out test views"
-    for key in ("object_psnr_cc", "object_psnr_constant", "normal_mae_deg", "depth_rel_err"):
+    for key in ("object_psnr_gain", "object_psnr_constant", "normal_mae_deg", "depth_rel_err"):
         assert np.isfinite(metrics[key]), key
