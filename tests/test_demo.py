@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import json
 import os
 import re
@@ -10,6 +11,7 @@ import signal
 import subprocess
 import sys
 from contextlib import contextmanager
+from pathlib import Path
 
 import pytest
 import torch
@@ -19,6 +21,7 @@ from evcap.app.pipeline import PipelineInterrupted
 from evcap.errors import InputError, OutputExistsError
 from evcap.recon import config
 
+ROOT = Path(__file__).resolve().parents[1]
 SHORT = 150  # stage I's steps in the test of the demo's mechanics (the demo's own: 550)
 
 
@@ -73,6 +76,7 @@ def test_demo_runs_resumes_and_writes_the_report(tmp_path, monkeypatch):
     assert metrics["effect_variation"].keys() == {"neither", "visibility+indirect"}
     page = report.read_text()
     assert "http://" not in page and "https://" not in page
+    assert "after one gain per color channel" in readme_demo().paragraph(readme_demo().facts(out))
 
     lines.clear()
     demo.run_demo(out, say=lines.append)
@@ -173,3 +177,21 @@ def test_demo_refuses_what_it_cannot_use(tmp_path):
     (made / "pipeline.json").write_text("{")
     with pytest.raises(InputError, match="damaged.*--force"):
         demo.run_demo(made)
+
+
+def readme_demo():
+    """scripts/readme_demo.py, imported from its file."""
+    spec = importlib.util.spec_from_file_location(
+        "readme_demo", ROOT / "scripts" / "readme_demo.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_readmes_demo_figures_are_those_the_demo_wrote():
+    """README.md's paragraph of the demo's figures is generated from docs/figures/demo.json
+    (what scripts/readme_demo.py took from a demo's folder), not typed."""
+    script = readme_demo()
+    facts = json.loads(script.FACTS.read_text())
+    assert script.section(script.README.read_text()) == script.paragraph(facts)
