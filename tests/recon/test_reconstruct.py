@@ -264,6 +264,39 @@ def test_the_corrected_figures_are_one_gain_per_channel_over_all_views(
     assert metrics["object_psnr"] < metrics["object_psnr_gain"]  # raw first, and not the same
 
 
+def test_a_known_background_is_held_in_both_stages_and_kept(color_session, tmp_path):
+    """known_background: both stages see that radiance wherever the Gaussians leave light
+    through, in training, in the written views and after a reload of their checkpoints."""
+    from evcap.recon.evaluate import render_views
+    from evcap.recon.export import load_checkpoint, load_material_checkpoint
+    from evcap.recon.optics import SensorOptics
+
+    grey = (0.3, 0.5, 0.7)
+    reconstruct(
+        color_session,
+        tmp_path,
+        preset="tiny",
+        iterations=20,
+        material_iterations=4,
+        radiance_settings={"known_background": grey},
+    )
+    folder = ReconstructionFolder(tmp_path)
+    assert folder.settings("radiance")["known_background"] == list(grey)
+    field, settings = load_checkpoint(folder.checkpoint("radiance"))
+    assert tuple(settings["known_background"]) == grey
+    material = load_material_checkpoint(folder.checkpoint("material"))
+    with Session.open(color_session) as s:
+        optics = SensorOptics.from_session(s)
+        pose = GroundTruth.read(s).held_out_views().T_world_cam[:1]
+    away = pose @ np.diag([-1.0, 1.0, -1.0, 1.0])  # turned round: nothing but the backdrop
+    for f in (field, material):
+        seen = render_views(f, away, optics)
+        assert seen["alpha"].max() < 1e-3
+        np.testing.assert_allclose(seen["radiance"].reshape(-1, 3).mean(0), grey, atol=1e-3)
+    with pytest.raises(InputError, match="known_background"):
+        cfg.preset("tiny", known_background=(1.0, 0.0, 1.0))
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 @pytest.mark.parametrize("backend", ["torch", "gsplat"])
 def test_both_stages_run_on_a_cuda_gpu(color_session, environment, tmp_path, backend):
