@@ -148,24 +148,21 @@ def relit_metrics(
     is fitted to the relit truth and the new light's tint is the model's to get right.
     ``radiance``: stage I's views, never relit, after their own gain
     (``relit_object_psnr_gain_baseline``)."""
-    one = np.ones(3)
-    raw = image_metrics(relit, truth.relit_radiance, "relit", one)
-    out = {k: v for k, v in raw.items() if not k.endswith("_gain")}
-    out.update(
-        {
-            k: v
-            for k, v in image_metrics(corrected, truth.relit_radiance, "relit", one).items()
-            if k.endswith("_gain")
-        }
-    )
+    one, seen = np.ones(3), truth.relit_radiance
+
+    def raw_and_corrected(score) -> dict[str, float]:
+        """``score``'s raw figures of ``relit``, its ``_gain`` ones of ``corrected``."""
+        out = {k: v for k, v in score(relit).items() if "_gain" not in k}
+        return out | {k: v for k, v in score(corrected).items() if "_gain" in k}
+
+    out = raw_and_corrected(lambda x: image_metrics(x, seen, "relit", one))
     mask = truth.object_mask()
     if mask is not None and mask.any():
-        raw = surface_metrics(relit, truth.relit_radiance, mask, "relit_object", gain=one)
-        out.update({k: v for k, v in raw.items() if "_gain" not in k})
-        fixed = surface_metrics(corrected, truth.relit_radiance, mask, "relit_object", gain=one)
-        out.update({k: v for k, v in fixed.items() if "_gain" in k})
+        out.update(
+            raw_and_corrected(lambda x: surface_metrics(x, seen, mask, "relit_object", gain=one))
+        )
         if radiance is not None and truth.radiance is not None:
             gain = gain_fit(radiance, truth.radiance, mask)
-            same = surface_metrics(radiance, truth.relit_radiance, mask, "relit_object", gain=gain)
+            same = surface_metrics(radiance, seen, mask, "relit_object", gain=gain)
             out["relit_object_psnr_gain_baseline"] = same["relit_object_psnr_gain"]
     return out
