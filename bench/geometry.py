@@ -1,5 +1,5 @@
 """Stage I geometry: each candidate change against the settings as they are, on the object's
-pixels of the held-out views (PSNR after color correction beside a constant color's, normal
+pixels of the held-out views (PSNR raw and after one gain beside a constant color's, normal
 error, depth error as a share of the distance) and the time it took.
 
     .venv/bin/python bench/geometry.py [--scenes single_object multi_object] [--preset fast]
@@ -57,10 +57,12 @@ COLUMNS = (
     "resolution",
     "seconds",
     "gaussians",
+    "object_psnr",
     "object_psnr_gain",
     "object_psnr_constant",
     "normal_mae_deg",
     "depth_rel_err",
+    "render_psnr",
     "render_psnr_gain",
 )
 

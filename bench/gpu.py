@@ -20,12 +20,15 @@ from _common import report
 from evcap.recon.reconstruct import reconstruct
 
 FIGURES = (
+    "object_psnr",
     "object_psnr_gain",
     "object_psnr_constant",
     "radiance_normal_mae_deg",
     "normal_mae_deg",
     "depth_rel_err",
+    "base_color_psnr",
     "base_color_psnr_gain",
+    "pbr_render_psnr",
     "pbr_render_psnr_gain",
 )
 

@@ -126,9 +126,11 @@ def reconstruction_difference(
             ).figures
             out[f"recon_{name}_poses_seconds{tag}"] = time.perf_counter() - t0
             for key in (
+                "object_psnr",
                 "object_psnr_gain",
                 "object_psnr_constant",
                 "normal_mae_deg",
+                "render_psnr",
                 "render_psnr_gain",
             ):
                 out[f"recon_{name}_poses_{key}{tag}"] = getattr(f, key)

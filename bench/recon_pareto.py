@@ -1,6 +1,6 @@
 """What accuracy costs in time: stage I of `evcap reconstruct` on the simulator's example scenes,
 for the presets and a sweep of iterations and render resolution around `fast`. Records quality
-on the held-out views (on the object's pixels: PSNR and SSIM after color correction, beside the
+on the held-out views (on the object's pixels: PSNR raw, PSNR and SSIM after one gain, beside the
 best constant color's PSNR; normal and depth error; whole-image PSNR beside the blurred truth's)
 against wall time and Gaussian count; writes a table (JSON and Markdown) and a plot (PNG).
 
@@ -37,11 +37,13 @@ COLUMNS = (
     "resolution",
     "seconds",
     "gaussians",
+    "object_psnr",
     "object_psnr_gain",
     "object_psnr_constant",
     "object_ssim_gain",
     "normal_mae_deg",
     "depth_rel_err",
+    "render_psnr",
     "render_psnr_gain",
     "blur_psnr",
 )
@@ -88,7 +90,7 @@ def plot(rows: list[dict], path: Path) -> None:
         top, bottom = axes[0, column], axes[1, column]
         if constant:
             top.axhline(max(constant), color="gray", ls="--", lw=1, label="a constant color")
-        top.set_ylabel("object PSNR after color correction, dB")
+        top.set_ylabel("object PSNR after one gain, dB")
         top.set_title(f"stage I on {scene}, held-out views ({rows[0]['device']})")
         top.legend(fontsize=8)
         bottom.set_ylabel("normal error on the object, degrees")

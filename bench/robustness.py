@@ -125,10 +125,12 @@ COLUMNS = (
     "scene",
     "row",
     "iterations",
+    "object_psnr",
     "object_psnr_gain",
     "object_psnr_constant",
     "normal_mae_deg",
     "depth_rel_err",
+    "base_color_psnr",
     "base_color_psnr_gain",
     "events",
     "given_back_on",
@@ -379,8 +381,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     RESULTS.mkdir(exist_ok=True)
     path = RESULTS / f"{args.name}.json"
     path.write_text(json.dumps({"benchmark": args.name, "machine": machine(), "runs": rows}))
-    columns = (*COLUMNS[:4], "object_psnr_gain_change", *COLUMNS[4:5], "normal_mae_deg_change")
-    table = markdown_table(rows, (*columns, *COLUMNS[5:]))
+    changes = ("object_psnr_gain", "normal_mae_deg")  # each beside its change
+    columns = tuple(c for k in COLUMNS for c in ((k, f"{k}_change") if k in changes else (k,)))
+    table = markdown_table(rows, columns)
     (RESULTS / f"{args.name}.md").write_text(table)
     print(table)
     print(f"-> {path}, .md")

@@ -35,10 +35,12 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 FIGURES = (
+    "object_psnr",
     "object_psnr_gain",
     "object_psnr_constant",
     "normal_mae_deg",
     "depth_rel_err",
+    "render_psnr",
     "render_psnr_gain",
 )
 
