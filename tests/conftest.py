@@ -91,6 +91,15 @@ def davis346_calibrations() -> Path:
 
 
 @pytest.fixture(scope="session")
+def nerf_synthetic_mic() -> Path:
+    """NeRF-Synthetic's mic as its release lays it out (Blender renders, CC-0)."""
+    folder = SHARED / "data" / "nerf-synthetic-mic"
+    if not (folder / "transforms_train.json").exists():
+        pytest.skip(f"NeRF-Synthetic mic is not at {folder} (set EVCAP_SHARED)")
+    return folder
+
+
+@pytest.fixture(scope="session")
 def method_summary() -> str:
     """reference/method.md (the reconstruction method's equations and constants), its lines
     joined."""
