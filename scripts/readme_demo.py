@@ -104,9 +104,14 @@ def wrap(text: str, width: int = 96) -> str:
     return "\n".join([*lines, line])
 
 
+def bounds(readme: str) -> tuple[int, int]:
+    """Where the text between README's markers starts and ends."""
+    return readme.index(BEGIN) + len(BEGIN), readme.index(END)
+
+
 def section(readme: str) -> str:
     """The text between README's markers."""
-    start, end = readme.index(BEGIN) + len(BEGIN), readme.index(END)
+    start, end = bounds(readme)
     return readme[start:end].strip("\n")
 
 
@@ -114,7 +119,7 @@ def main(demo: Path) -> None:
     found = facts(demo)
     FACTS.write_text(json.dumps(found, indent=2) + "\n")
     readme = README.read_text()
-    start, end = readme.index(BEGIN) + len(BEGIN), readme.index(END)
+    start, end = bounds(readme)
     README.write_text(readme[:start] + "\n" + paragraph(found) + "\n" + readme[end:])
     print(f"-> {FACTS}, {README}")
 
