@@ -534,7 +534,7 @@ def _export_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from evcap.recon.mesh_export import FORMATS, export_mesh
+    from evcap.recon.mesh.export import FORMATS, export_mesh
 
     if not args.asset.lower().endswith(FORMATS):
         raise InputError(f"{args.asset}: write .glb, .obj or .ply")

@@ -13,9 +13,9 @@ import torch
 from evcap.errors import InputError
 from evcap.recon.config import MeshConfig
 from evcap.recon.export import load_checkpoint
-from evcap.recon.mesh_export import export_mesh, read_glb
-from evcap.recon.optics import SensorOptics
-from evcap.recon.sh import C0
+from evcap.recon.mesh.export import export_mesh, read_glb
+from evcap.recon.scene.optics import SensorOptics
+from evcap.recon.scene.sh import C0
 from evcap.records import Poses
 from evcap.records.reconstruction_folder import ReconstructionFolder
 from evcap.report.viewer import Scene3D, write_viewer

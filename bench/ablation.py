@@ -36,10 +36,10 @@ import numpy as np
 import torch
 from _common import RESULTS, machine, scene_file, scene_label, session_of
 
-import evcap.recon.material as material
-import evcap.recon.radiance as radiance
-from evcap.recon.gaussians import Background, Gaussians
+import evcap.recon.material.stage as material
+import evcap.recon.radiance.stage as radiance
 from evcap.recon.reconstruct import reconstruct
+from evcap.recon.scene.gaussians import Background, Gaussians
 from evcap.records.reconstruction_folder import RENDERS, ReconstructionFolder
 from evcap.sim.lighting import Environment
 from evcap.sim.meshes import build_mesh, sample_surface

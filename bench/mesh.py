@@ -12,8 +12,9 @@ gets it (the .glb written and read back), scored where the cameras saw the scene
 - Normals: the mesh's at its sampled points against the true surface's at the nearest point.
 - The held-out views ray-cast through the mesh (each sensor pixel's ray, its lens included):
   the base color texture where the ray meets the mesh, scored as stage II's maps are scored
-  (recon/metrics.py: on the truth's surface, PSNR after a gain and offset per channel fitted
-  once over the views), beside stage II's own maps of the same views; depth and normals there.
+  (recon/evaluate/metrics.py: on the truth's surface, PSNR after a gain and offset per channel
+  fitted once over the views), beside stage II's own maps of the same views; depth and
+  normals there.
 - The .glb read back by pygltflib: every texture present.
 """
 
@@ -29,7 +30,7 @@ import numpy as np
 from _common import RESULTS, machine, scene_file
 
 from evcap.recon.config import MeshConfig
-from evcap.recon.mesh_export import MeshAsset, export_mesh, read_glb
+from evcap.recon.mesh.export import MeshAsset, export_mesh, read_glb
 
 PATH_VIEWS = 40  # cameras of the path that decide which of the truth was seen
 
@@ -37,7 +38,7 @@ PATH_VIEWS = 40  # cameras of the path that decide which of the truth was seen
 def truth_surface(scene: str, track, optics, samples: int, seed: int = 0):
     """(points [P, 3], normals [P, 3]) of the true surface that some camera of the path saw
     (inside the pinhole view that holds the sensor's pixels, nothing in front)."""
-    from evcap.recon.optics import render_grid
+    from evcap.recon.scene.optics import render_grid
     from evcap.sim.meshes import build_mesh, sample_surface
     from evcap.sim.raytrace import Bvh
     from evcap.sim.scene import load_scene
@@ -128,8 +129,8 @@ def ray_cast(asset: MeshAsset, poses: np.ndarray, optics) -> dict[str, np.ndarra
 def view_figures(asset: MeshAsset, out: Path, session: Path) -> dict:
     """The mesh's base color, depth and normals in the held-out views, and stage II's maps of
     the same views scored the same way."""
-    from evcap.recon.metrics import depth_rel_err, normal_mae_deg, surface_metrics
-    from evcap.recon.optics import SensorOptics
+    from evcap.recon.evaluate.metrics import depth_rel_err, normal_mae_deg, surface_metrics
+    from evcap.recon.scene.optics import SensorOptics
     from evcap.records import GroundTruth
     from evcap.records.reconstruction_folder import ReconstructionFolder
     from evcap.session import Session
@@ -180,7 +181,7 @@ def glb_figures(asset: MeshAsset, folder: Path) -> tuple[dict, MeshAsset]:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    from evcap.recon.optics import SensorOptics
+    from evcap.recon.scene.optics import SensorOptics
     from evcap.records import Poses
     from evcap.records.reconstruction_folder import ReconstructionFolder
     from evcap.session import Session

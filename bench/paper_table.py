@@ -49,10 +49,8 @@ import torch
 from _common import RESULTS, machine
 
 from evcap.images import srgb
-from evcap.recon.evaluate import render_views
-from evcap.recon.export import load_checkpoint, load_material_checkpoint
-from evcap.recon.lpips import Lpips
-from evcap.recon.metrics import (
+from evcap.recon.evaluate.lpips import Lpips
+from evcap.recon.evaluate.metrics import (
     affine_per_view_psnr,
     depth_rel_err,
     gain_fit,
@@ -60,8 +58,10 @@ from evcap.recon.metrics import (
     psnr,
     ssim_map,
 )
-from evcap.recon.optics import SensorOptics
+from evcap.recon.evaluate.views import render_views
+from evcap.recon.export import load_checkpoint, load_material_checkpoint
 from evcap.recon.reconstruct import pick_device, reconstruct
+from evcap.recon.scene.optics import SensorOptics
 from evcap.records import GroundTruth, ReconstructionFolder, TruthViews
 from evcap.session import Session
 from evcap.sim.from_images import rays, simulate_from_images

@@ -29,8 +29,8 @@ import torch
 from _common import RESULTS, report, scene_label, session_of
 
 from evcap.recon.export import load_checkpoint
-from evcap.recon.optics import SensorOptics
-from evcap.recon.rasterize import Camera, rasterize
+from evcap.recon.raster.rasterize import Camera, rasterize
+from evcap.recon.scene.optics import SensorOptics
 from evcap.records import GroundTruth, ReconstructionFolder
 from evcap.session import Session
 
@@ -155,7 +155,7 @@ def main(argv: list[str] | None = None) -> None:
     threads_before = torch.get_num_threads()
     gsplat = False
     if torch.cuda.is_available():
-        from evcap.recon import _raster_gsplat
+        from evcap.recon.raster import _gsplat as _raster_gsplat
 
         gsplat = _raster_gsplat.available()
     rows = []

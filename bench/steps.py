@@ -117,7 +117,7 @@ class Clock:
 
 def _check_every() -> int:
     """The steps between the trainers' checks for NaN (each waits for the device)."""
-    from evcap.recon import radiance
+    from evcap.recon.radiance import stage as radiance
 
     return getattr(radiance, "CHECK_EVERY", 1)  # before it had a name: every step
 
@@ -134,8 +134,8 @@ def measure(args: argparse.Namespace) -> dict:
     import torch
 
     from evcap.recon import config as cfg
-    from evcap.recon.material import train_material
-    from evcap.recon.radiance import load_training_data, train_radiance
+    from evcap.recon.material.stage import train_material
+    from evcap.recon.radiance.stage import load_training_data, train_radiance
     from evcap.session import Session
 
     if args.threads:

@@ -14,7 +14,7 @@ from evcap.errors import InputError
 Stage = Literal["radiance", "material", "all"]  # stage I, stage II, both
 Preset = Literal["tiny", "small", "fast", "paper"]
 Device = Literal["cpu", "cuda"]
-Backend = Literal["cpu", "torch", "gsplat"]  # the rasterizer (recon/rasterize.py)
+Backend = Literal["cpu", "torch", "gsplat"]  # the rasterizer (recon/raster/rasterize.py)
 ZeroEvents = Literal["target", "bound"]  # what a pixel without events says
 EffectMode = Literal["auto", "on", "off"]  # stage II's visibility and indirect light
 Ablation = Literal["anchor", "tv", "distill"]  # stage II's terms that can be left out
@@ -128,7 +128,7 @@ class RadianceConfig:
     # behind every view: held there, not learnt, it fixes the gain the anchor is for (the anchor
     # is then left out) and leaves no room for fog of its colour; None: the background is learnt
     known_background: tuple[float, float, float] | None = None
-    # the trajectory refined by the event loss (recon/pose_refinement.py): a correction per
+    # the trajectory refined by the event loss (recon/radiance/pose_refinement.py): a correction per
     # keyframe, one every pose_keyframe_ms, learnt from pose_from of the run on by Adam at these
     # rates (radians; fractions of the scene's extent), which decay tenfold by the end; their
     # second differences along the keyframes weighted by pose_smooth_weight

@@ -13,10 +13,10 @@ from evcap.atomic_write import atomic_path
 from evcap.errors import InputError
 from evcap.images import srgb
 from evcap.recon.config import Backend
-from evcap.recon.gaussians import Background, Gaussians
-from evcap.recon.material import MaterialField
-from evcap.recon.radiance import RadianceField
-from evcap.recon.sh import C0
+from evcap.recon.material.stage import MaterialField
+from evcap.recon.radiance.stage import RadianceField
+from evcap.recon.scene.gaussians import Background, Gaussians
+from evcap.recon.scene.sh import C0
 from evcap.records.reconstruction_folder import ReconstructionFolder, Renders, Split
 
 

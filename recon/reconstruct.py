@@ -33,7 +33,8 @@ from evcap.recon.config import (
     Stage,
     ZeroEvents,
 )
-from evcap.recon.evaluate import (
+from evcap.recon.evaluate.metrics import image_metrics, normal_mae_deg, object_metrics
+from evcap.recon.evaluate.views import (
     material_metrics,
     metrics,
     relit_metrics,
@@ -48,24 +49,23 @@ from evcap.recon.export import (
     write_ply,
     write_views,
 )
-from evcap.recon.material import (
+from evcap.recon.material.stage import (
     MaterialFit,
     environment_image,
     light_from_image,
     resume_misfit,
     train_material,
 )
-from evcap.recon.metrics import image_metrics, normal_mae_deg, object_metrics
-from evcap.recon.optics import SensorOptics
-from evcap.recon.radiance import (
+from evcap.recon.radiance.stage import (
     Fit,
     RadianceField,
     TrainingData,
     load_training_data,
     train_radiance,
 )
-from evcap.recon.rasterize import pick_backend
-from evcap.recon.shading import mip_chain
+from evcap.recon.raster.rasterize import pick_backend
+from evcap.recon.scene.cube_map import mip_chain
+from evcap.recon.scene.optics import SensorOptics
 from evcap.records import (
     Figures,
     GroundTruth,

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from evcap.recon.evaluate import shown_gain
+from evcap.recon.evaluate.views import shown_gain
 from evcap.records import GroundTruth
 from evcap.records.reconstruction_folder import ReconstructionFolder
 from evcap.report.images import depth_image, depth_range, normal_image, srgb8

@@ -14,7 +14,7 @@ with the root attributes ``truth_version`` and ``source`` (the session's name), 
 ``write_truth(session, truth)`` makes it from a simulated session; ``copy_truth(truth,
 session)`` adds its ground truth (images back in float32) to a session, e.g. one recorded from
 the fixture, so that ``evcap reconstruct`` renders and scores the held-out views
-(evcap.recon.evaluate.test_views) and the estimated poses can be compared with the truth. (A
+(evcap.recon.evaluate.views.test_views) and the estimated poses can be compared with the truth. (A
 simulated session itself reads as a truth file too.)
 """
 

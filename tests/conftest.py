@@ -339,10 +339,10 @@ def surface_reconstruction(tiny_scene, tmp_path_factory) -> Path:
     import torch
 
     from evcap.recon.export import save_checkpoint, save_material_checkpoint
-    from evcap.recon.gaussians import Background, Gaussians
-    from evcap.recon.material import MaterialField
-    from evcap.recon.radiance import RadianceField
-    from evcap.recon.shading import MIN_ROUGHNESS
+    from evcap.recon.material.shading import MIN_ROUGHNESS
+    from evcap.recon.material.stage import MaterialField
+    from evcap.recon.radiance.stage import RadianceField
+    from evcap.recon.scene.gaussians import Background, Gaussians
     from evcap.records.reconstruction_folder import ReconstructionFolder
     from evcap.sim.meshes import build_mesh, sample_surface
     from evcap.sim.scene import load_scene

@@ -177,7 +177,7 @@ def test_each_floor_imports_only_what_the_layout_draws_under_it(floor):
         ("report", "report/x.py", "evcap.recon.export"),
         ("acquire", "acquire/x.py", "evcap.tui"),
         ("tui", "tui/x.py", "evcap.app.cli"),
-        ("sim", "sim/x.py", "evcap.recon.gaussians"),
+        ("sim", "sim/x.py", "evcap.recon.scene.gaussians"),
         ("batch", "batch/x.py", "evcap.tui"),
     ],
 )

@@ -13,14 +13,16 @@ import torch.nn.functional as F
 
 from evcap.events import Events
 from evcap.recon import config as cfg
-from evcap.recon import event_windows, losses
-from evcap.recon._event_loss_cpu import event_loss_cpu
-from evcap.recon._sample_cpu import Sampler
-from evcap.recon._surface_terms_cpu import surface_terms_cpu
-from evcap.recon.event_windows import EventWindows
-from evcap.recon.optics import CHANNEL_WEIGHTS, SensorOptics
-from evcap.recon.radiance import event_loss_torch, expected_noise
-from evcap.recon.shading import cube_lookup, mip_chain, prefiltered
+from evcap.recon.events import windows as event_windows
+from evcap.recon.events._loss_cpu import event_loss_cpu
+from evcap.recon.events.windows import EventWindows
+from evcap.recon.material.shading import prefiltered
+from evcap.recon.radiance import losses
+from evcap.recon.radiance._surface_terms_cpu import surface_terms_cpu
+from evcap.recon.radiance.stage import event_loss_torch, expected_noise
+from evcap.recon.scene._sample_cpu import Sampler
+from evcap.recon.scene.cube_map import cube_lookup, mip_chain
+from evcap.recon.scene.optics import CHANNEL_WEIGHTS, SensorOptics
 from evcap.records import Calibration
 from evcap.session import SensorInfo, Session, SessionWriter
 

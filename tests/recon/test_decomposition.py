@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from evcap.recon import radiance
-from evcap.recon.gaussians import Background, Gaussians
-from evcap.recon.rasterize import gaussian_normals
+from evcap.recon.radiance import stage as radiance
+from evcap.recon.raster.rasterize import gaussian_normals
 from evcap.recon.reconstruct import reconstruct
+from evcap.recon.scene.gaussians import Background, Gaussians
 from evcap.sim.meshes import build_mesh, sample_surface, sphere
 from evcap.sim.scene import load_scene
 from evcap.sim.simulate import simulate

@@ -8,16 +8,16 @@ import torch
 
 from evcap.errors import InputError
 from evcap.recon import config as cfg
-from evcap.recon.gaussians import Background, Gaussians
-from evcap.recon.losses import (
+from evcap.recon.radiance.losses import (
     depth_curvature_loss,
     depth_spread_loss,
     normal_smoothness_loss,
     quiet_variation_loss,
 )
-from evcap.recon.optics import RenderGrid
-from evcap.recon.radiance import RadianceField
-from evcap.recon.rasterize import Camera, rasterize
+from evcap.recon.radiance.stage import RadianceField
+from evcap.recon.raster.rasterize import Camera, rasterize
+from evcap.recon.scene.gaussians import Background, Gaussians
+from evcap.recon.scene.optics import RenderGrid
 
 
 def layers(depths: list[float], opacity: float) -> tuple[torch.Tensor, ...]:

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from evcap.errors import InputError
-from evcap.recon.lpips import CHANNELS, CONVS, Lpips
+from evcap.recon.evaluate.lpips import CHANNELS, CONVS, Lpips
 
 SHAPES = {0: (64, 3, 11, 11), 3: (192, 64, 5, 5), 6: (384, 192, 3, 3)}
 SHAPES |= {8: (256, 384, 3, 3), 10: (256, 256, 3, 3)}
@@ -78,7 +78,7 @@ def test_the_reconstructions_lpips_uses_the_weights_already_on_the_machine(tmp_p
     package ships, computed here; None when either is missing."""
     import sys
 
-    from evcap.recon import metrics
+    from evcap.recon.evaluate import metrics
 
     hub, package = tmp_path / "hub", tmp_path / "site" / "lpips"
     (hub / "checkpoints").mkdir(parents=True)

@@ -9,18 +9,13 @@ import torch
 
 from evcap.errors import InputError
 from evcap.recon import config as cfg
-from evcap.recon import material
-from evcap.recon.gaussians import Gaussians
-from evcap.recon.material import edge_tv, light_from_image
-from evcap.recon.radiance import load_training_data, new_field
-from evcap.recon.shading import (
-    cube_directions,
-    cube_lookup,
-    fibonacci_directions,
-    mip_chain,
-    shade,
-)
-from evcap.recon.visibility import bake_occlusion, bake_visibility
+from evcap.recon.material import stage as material
+from evcap.recon.material.shading import fibonacci_directions, shade
+from evcap.recon.material.stage import edge_tv, light_from_image
+from evcap.recon.material.visibility import bake_occlusion, bake_visibility
+from evcap.recon.radiance.stage import load_training_data, new_field
+from evcap.recon.scene.cube_map import cube_directions, cube_lookup, mip_chain
+from evcap.recon.scene.gaussians import Gaussians
 from evcap.session import Session
 
 
@@ -180,7 +175,7 @@ def test_the_light_a_roof_blocks_is_found_coming_off_its_underside():
 def test_a_red_roof_bleeds_red_onto_what_lies_under_it():
     """The diffuse light leaving the roof's underside (its base color times the light from
     below) arrives at the white point under it, weighted as the bake says."""
-    from evcap.recon.gaussians import Background
+    from evcap.recon.scene.gaussians import Background
 
     g = plane_and_point(0.0)
     up = UP.repeat(len(g), 1)
@@ -314,9 +309,9 @@ def test_auto_models_the_effects_that_made_the_radiance(stage_one, made_with):
     its red on the floor): `auto` chooses the effects that explain it, and only those. (With
     visibility alone the start also varies least under visibility alone; `auto` does not
     offer it, see effect_choices.)"""
-    from evcap.recon.gaussians import Background
-    from evcap.recon.radiance import RadianceField
-    from evcap.recon.sh import C0
+    from evcap.recon.radiance.stage import RadianceField
+    from evcap.recon.scene.gaussians import Background
+    from evcap.recon.scene.sh import C0
 
     _, data, config = stage_one
     g, normals, floor = ball_on_floor(0.35, 0.07, 1.0, floor_z=-0.6)  # where the orbit looks
@@ -353,7 +348,7 @@ def test_relighting_scales_the_light_from_other_surfaces_with_the_light():
     """Twice the light gives twice the radiance, the part that bounced off other surfaces
     included (learnt under the first light, it must not stay as it was); the learnt light
     itself gives the views as they were."""
-    from evcap.recon.gaussians import Background
+    from evcap.recon.scene.gaussians import Background
 
     g = plane_and_point(0.0)  # the point lies under the plane: most of its light bounced
     up = torch.tensor([0.0, 0.0, 1.0]).repeat(len(g), 1)

@@ -1,10 +1,10 @@
 """The mesh export's parts on scenes whose surface is known exactly: depth fusion and marching
-cubes (recon/tsdf.py), the texture atlas and its baking (recon/bake.py)."""
+cubes (recon/mesh/tsdf.py), the texture atlas and its baking (recon/mesh/bake.py)."""
 
 import numpy as np
 import pytest
 
-from evcap.recon.tsdf import Grid, Tsdf, largest_parts, simplified
+from evcap.recon.mesh.tsdf import Grid, Tsdf, largest_parts, simplified
 from evcap.sim.trajectory import look_at
 
 CENTRE, RADIUS = np.array([0.1, -0.05, 0.0]), 0.5
@@ -89,7 +89,7 @@ def sphere_color(points: np.ndarray) -> np.ndarray:
 
 
 def sphere_view(T: np.ndarray):
-    from evcap.recon.bake import View
+    from evcap.recon.mesh.bake import View
 
     depth = sphere_depth(T)
     v, u = np.mgrid[0:H, 0:W]
@@ -100,7 +100,7 @@ def sphere_view(T: np.ndarray):
 
 
 def test_baked_texture_holds_the_surface_color():
-    from evcap.recon.bake import atlas, bake, sample, texels, texture
+    from evcap.recon.mesh.bake import atlas, bake, sample, texels, texture
 
     grid = Grid.around(CENTRE - 0.7, CENTRE + 0.7, 0.04)
     tsdf = Tsdf(grid)

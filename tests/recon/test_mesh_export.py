@@ -8,7 +8,7 @@ import pytest
 from evcap.errors import InputError
 from evcap.images import srgb
 from evcap.recon.config import MeshConfig
-from evcap.recon.mesh_export import export_mesh, read_glb
+from evcap.recon.mesh.export import export_mesh, read_glb
 
 RADIUS = 0.6  # tests/conftest.py's sphere, at the origin
 # the tiny scene's 48 x 36 views rendered at 4 times its focal length: pixels of 1 cm there
@@ -100,7 +100,7 @@ def test_obj_and_ply_are_written_beside_their_textures(asset, tmp_path):
 
 
 def test_a_broken_glb_is_refused_with_what_to_do(tmp_path):
-    from evcap.recon.mesh_export import read_glb
+    from evcap.recon.mesh.export import read_glb
 
     broken = (("noise.glb", bytes(range(256)) * 4), ("cut.glb", b"glTF" + b"\0" * 40))
     for name, data in (*broken, ("empty.glb", b""), ("short.glb", b"glTF\2\0")):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from evcap.images import fit_color_correction, fit_gain
-from evcap.recon.metrics import (
+from evcap.recon.evaluate.metrics import (
     background_clear,
     blur_psnr,
     depth_rel_err,
@@ -108,7 +108,7 @@ def test_depth_error_relative_to_the_distance(scene):
 def test_the_radiance_as_base_color_baseline(scene):
     """Shading that is one tint over the object is what the correction forgives: the radiance
     itself then scores as the base color; shading that varies across it is not."""
-    from evcap.recon.evaluate import material_metrics
+    from evcap.recon.evaluate.views import material_metrics
 
     base, depth = scene
     surface = depth > 0

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from evcap.events import Events
-from evcap.recon import event_windows
-from evcap.recon.event_windows import EventWindows
-from evcap.recon.noise_filter import supported
+from evcap.recon.events import windows as event_windows
+from evcap.recon.events.noise_filter import supported
+from evcap.recon.events.windows import EventWindows
 from evcap.session import SensorInfo, Session, SessionWriter
 
 W = H = 20

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from evcap.recon.gaussians import Background, Gaussians
-from evcap.recon.optics import RenderGrid
-from evcap.recon.pose_refinement import PoseCorrections, exp_so3
-from evcap.recon.radiance import RadianceField
+from evcap.recon.radiance.pose_refinement import PoseCorrections, exp_so3
+from evcap.recon.radiance.stage import RadianceField
 from evcap.recon.reconstruct import reconstruct
+from evcap.recon.scene.gaussians import Background, Gaussians
+from evcap.recon.scene.optics import RenderGrid
 from evcap.records import Poses, ReconstructionFolder
 from evcap.rotations import exp_so3 as exp_so3_numpy
 from evcap.session import Session

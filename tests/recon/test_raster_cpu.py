@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from evcap.recon import _raster_cpu, _raster_torch
-from evcap.recon._raster_reference import composite_reference
-from evcap.recon.rasterize import Camera, camera_normals, rasterize
+from evcap.recon.raster import _cpu as _raster_cpu
+from evcap.recon.raster import _torch as _raster_torch
+from evcap.recon.raster._reference import composite_reference
+from evcap.recon.raster.rasterize import Camera, camera_normals, rasterize
 
 F64 = torch.float64
 

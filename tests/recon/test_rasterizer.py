@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from evcap.errors import NumericalError
-from evcap.recon import _raster_torch
-from evcap.recon._raster_reference import rasterize_reference
-from evcap.recon.rasterize import Camera, camera_normals, rasterize
+from evcap.recon.raster import _torch as _raster_torch
+from evcap.recon.raster._reference import rasterize_reference
+from evcap.recon.raster.rasterize import Camera, camera_normals, rasterize
 
 
 def tiny_gaussians(n=7, seed=0, dtype=torch.float64):
@@ -97,7 +97,7 @@ def test_pixel_centres_follow_opencv(backend):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 def test_gsplat_agrees_with_torch():
-    from evcap.recon import _raster_gsplat
+    from evcap.recon.raster import _gsplat as _raster_gsplat
 
     if not _raster_gsplat.available():
         pytest.skip("gsplat is not installed or cannot build its kernels")

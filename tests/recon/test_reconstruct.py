@@ -17,7 +17,7 @@ import torch
 from evcap.errors import InputError
 from evcap.recon import config as cfg
 from evcap.recon.export import read_ply_header
-from evcap.recon.radiance import RadianceField, load_training_data, new_field, train_radiance
+from evcap.recon.radiance.stage import RadianceField, load_training_data, new_field, train_radiance
 from evcap.recon.reconstruct import reconstruct
 from evcap.records import Calibration, GroundTruth, ReconstructionFolder
 from evcap.session import Session, SessionWriter
@@ -202,7 +202,7 @@ def test_material_stage_resumes_from_the_checkpoint(color_session, color_result,
 
 def least_squares_gain(fit_on: np.ndarray, fit_to: np.ndarray) -> np.ndarray:
     """[3] the gain per channel of pixels [P, 3] onto others, by least squares, computed here
-    without recon/metrics.py."""
+    without recon/evaluate/metrics.py."""
     p, t = fit_on.astype(np.float64), fit_to.astype(np.float64)
     return np.array([np.linalg.lstsq(p[:, [c]], t[:, c], rcond=None)[0][0] for c in range(3)])
 
@@ -222,10 +222,10 @@ def test_the_corrected_figures_are_one_gain_per_channel_over_all_views(
     fitted once over the scored pixels of all held-out views; the relit views under the new
     light brought into the model's units by the gain of the render under the first light,
     and taken back by it."""
-    from evcap.recon.evaluate import render_views
+    from evcap.recon.evaluate.views import render_views
     from evcap.recon.export import load_material_checkpoint
-    from evcap.recon.material import light_from_image
-    from evcap.recon.optics import SensorOptics
+    from evcap.recon.material.stage import light_from_image
+    from evcap.recon.scene.optics import SensorOptics
 
     out = tmp_path / "again"
     shutil.copytree(color_result[0], out)
@@ -267,9 +267,9 @@ def test_the_corrected_figures_are_one_gain_per_channel_over_all_views(
 def test_a_known_background_is_held_in_both_stages_and_kept(color_session, tmp_path):
     """known_background: both stages see that radiance wherever the Gaussians leave light
     through, in training, in the written views and after a reload of their checkpoints."""
-    from evcap.recon.evaluate import render_views
+    from evcap.recon.evaluate.views import render_views
     from evcap.recon.export import load_checkpoint, load_material_checkpoint
-    from evcap.recon.optics import SensorOptics
+    from evcap.recon.scene.optics import SensorOptics
 
     grey = (0.3, 0.5, 0.7)
     reconstruct(
@@ -302,7 +302,7 @@ def test_a_known_background_is_held_in_both_stages_and_kept(color_session, tmp_p
 def test_both_stages_run_on_a_cuda_gpu(color_session, environment, tmp_path, backend):
     # on a GPU, the densification's statistics and the PLY export once took CPU tensors
     if backend == "gsplat":
-        from evcap.recon import _raster_gsplat
+        from evcap.recon.raster import _gsplat as _raster_gsplat
 
         if not _raster_gsplat.available():
             pytest.skip("gsplat is not installed or cannot build its kernels")
@@ -364,9 +364,9 @@ def test_checkpoint_holds_the_field(color_result):
 def test_stage_two_checkpoint_reads_back_the_field_that_was_scored(color_session, color_result):
     """The material field read from its checkpoint renders the held-out views as the trained
     one did: its shaded render scores what metrics.json says, to the bit."""
-    from evcap.recon.evaluate import material_metrics, render_views
+    from evcap.recon.evaluate.views import material_metrics, render_views
     from evcap.recon.export import load_material_checkpoint
-    from evcap.recon.optics import SensorOptics
+    from evcap.recon.scene.optics import SensorOptics
 
     out, result = color_result
     field = load_material_checkpoint(out / "checkpoint" / "material.pt")

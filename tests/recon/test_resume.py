@@ -153,7 +153,7 @@ def test_a_state_another_version_saved_is_refused_by_name(session, tmp_path, int
 
 
 def test_a_step_cut_in_two_is_not_saved(session, tmp_path, monkeypatch):
-    from evcap.recon import densify
+    from evcap.recon.radiance import densify
 
     def cut(*args, **kwargs):
         raise KeyboardInterrupt  # a second Ctrl-C, in the middle of a step

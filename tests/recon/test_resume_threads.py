@@ -13,8 +13,9 @@ import pytest
 import torch
 
 from evcap.recon import config as cfg
-from evcap.recon import material, radiance
 from evcap.recon.export import load_checkpoint
+from evcap.recon.material import stage as material
+from evcap.recon.radiance import stage as radiance
 from evcap.recon.reconstruct import reconstruct
 from evcap.recon.resume import digest
 from evcap.records import Poses

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from evcap.recon import shading
+from evcap.recon.material import shading
+from evcap.recon.scene import cube_map
 from evcap.sim import integrals
 from evcap.sim.lighting import Environment
 from evcap.sim.scene import Lighting
@@ -37,9 +38,9 @@ def test_split_sum_against_the_monte_carlo_truth(roughness):
     truth = base / np.pi * irradiance + specular
     # the model: the same sky in its cube map
     size = 64
-    texels = shading.cube_directions(size).reshape(-1, 3).double().numpy()
+    texels = cube_map.cube_directions(size).reshape(-1, 3).double().numpy()
     faces = torch.from_numpy(env.radiance(texels)).float().reshape(6, size, size, 3)
-    light = shading.mip_chain(faces.permute(0, 3, 1, 2).contiguous())
+    light = cube_map.mip_chain(faces.permute(0, 3, 1, 2).contiguous())
     f = lambda x: torch.from_numpy(x).float()  # noqa: E731
     ours = shading.shade(
         f(base), f(rough), f(n), f(v), light, shading.fibonacci_directions(256)

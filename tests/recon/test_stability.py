@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from evcap.recon.event_windows import EventWindows
-from evcap.recon.losses import anchor_loss, event_loss, log_radiance, normal_loss
-from evcap.recon.rasterize import Camera, rasterize
+from evcap.recon.events.windows import EventWindows
+from evcap.recon.radiance.losses import anchor_loss, event_loss, log_radiance, normal_loss
+from evcap.recon.raster.rasterize import Camera, rasterize
 from evcap.records import Poses
 
 
@@ -191,7 +191,7 @@ def test_microsecond_times_far_from_zero_stay_exact():
 
 
 def test_background_is_finite_in_every_direction():
-    from evcap.recon.gaussians import Background
+    from evcap.recon.scene.gaussians import Background
 
     bg = Background(8)
     axes = torch.eye(3)

@@ -14,8 +14,8 @@ import pytest
 
 from evcap.errors import InputError
 from evcap.events import Events
-from evcap.recon.material import MaterialLog
-from evcap.recon.radiance import StepLog
+from evcap.recon.material.stage import MaterialLog
+from evcap.recon.radiance.stage import StepLog
 from evcap.records import TruthViews
 from evcap.report.html import SECTIONS, write_report
 from evcap.report.images import colormap, gray_image, normal_image, png_data_uri

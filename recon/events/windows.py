@@ -30,9 +30,9 @@ import torch
 
 from evcap.errors import InputError
 from evcap.recon._threads import follow_torch_threads
-from evcap.recon.noise_filter import supported
-from evcap.recon.optics import SensorOptics
+from evcap.recon.events.noise_filter import supported
 from evcap.recon.resume import digest
+from evcap.recon.scene.optics import SensorOptics
 from evcap.session import Session
 
 MIN_EVENTS = 500  # fewer than this say nothing of a scene: refused before minutes of fitting

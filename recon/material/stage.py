@@ -24,33 +24,31 @@ import torch.nn.functional as F
 from evcap.edge_maps import edge_map
 from evcap.recon._threads import torch_on_one_thread
 from evcap.recon.config import Ablation, Backend, EffectMode, MaterialConfig, RadianceConfig
-from evcap.recon.gaussians import Background, Gaussians
-from evcap.recon.losses import anchor_loss, checked_loss
-from evcap.recon.neighbours import nearest
-from evcap.recon.optics import RenderGrid
-from evcap.recon.radiance import (
+from evcap.recon.material.shading import (
+    DIFFUSE_DIRECTIONS,
+    MIN_ROUGHNESS,
+    diffuse_both_sides,
+    fibonacci_directions,
+    irradiance,
+    shade,
+)
+from evcap.recon.material.visibility import Bounce, bake_occlusion
+from evcap.recon.radiance.losses import anchor_loss, checked_loss
+from evcap.recon.radiance.stage import (
     CHECK_EVERY,
     RadianceField,
     TrainingData,
     draw_frames,
     windows_event_loss,
 )
-from evcap.recon.rasterize import Camera, Render, gaussian_normals, rasterize
+from evcap.recon.raster.rasterize import Camera, Render, gaussian_normals, rasterize
 from evcap.recon.resume import Steps, digest, random_states, restore_random_states
-from evcap.recon.sh import eval_sh
-from evcap.recon.shading import (
-    DIFFUSE_DIRECTIONS,
-    MIN_ROUGHNESS,
-    cube_directions,
-    cube_lookup,
-    diffuse_both_sides,
-    fibonacci_directions,
-    irradiance,
-    mip_chain,
-    shade,
-)
+from evcap.recon.scene.cube_map import cube_directions, cube_lookup, mip_chain
+from evcap.recon.scene.gaussians import Background, Gaussians
+from evcap.recon.scene.neighbours import nearest
+from evcap.recon.scene.optics import RenderGrid
+from evcap.recon.scene.sh import eval_sh
 from evcap.recon.step_timer import UNTIMED, StepTimer
-from evcap.recon.visibility import Bounce, bake_occlusion
 from evcap.records import Poses
 from evcap.session import Session
 

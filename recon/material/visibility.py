@@ -31,8 +31,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from evcap.recon.gaussians import Gaussians
-from evcap.recon.rasterize import quat_to_rotmat
+from evcap.recon.raster.rasterize import quat_to_rotmat
+from evcap.recon.scene.gaussians import Gaussians
 
 OCCLUDER = 0.5  # Gaussians at least this opaque block the light
 SPLAT_SIGMAS = 2.0  # an occluder's footprint reaches this many sigmas

@@ -158,10 +158,10 @@ def surface_terms(
     which: tuple[bool, bool, bool],
 ) -> torch.Tensor:
     """[3]: normal_loss, depth_spread_loss and normal_smoothness_loss of one render (0 for a
-    term ``which`` leaves out); on the CPU one compiled pass (recon/_surface_terms_cpu.py),
+    term ``which`` leaves out); on the CPU one compiled pass (recon/radiance/_surface_terms_cpu.py),
     elsewhere these functions."""
     if normal.device.type == "cpu":
-        from evcap.recon._surface_terms_cpu import surface_terms_cpu
+        from evcap.recon.radiance._surface_terms_cpu import surface_terms_cpu
 
         return surface_terms_cpu(normal, depth, alpha, second_moment, K, smooth_step, which)
     zero = depth.new_zeros(())

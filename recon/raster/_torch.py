@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import torch
 
-from evcap.recon.rasterize import Camera, Render, camera_normals, quat_to_rotmat
+from evcap.recon.raster.rasterize import Camera, Render, camera_normals, quat_to_rotmat
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99

@@ -7,8 +7,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from evcap.recon.material import CHANNELS, MaterialField
-from evcap.recon.metrics import (
+from evcap.recon.evaluate.metrics import (
     background_clear,
     blur_psnr,
     depth_abs_err,
@@ -22,8 +21,9 @@ from evcap.recon.metrics import (
     srgb,
     surface_metrics,
 )
-from evcap.recon.optics import SensorOptics, render_grid
-from evcap.recon.radiance import RadianceField
+from evcap.recon.material.stage import CHANNELS, MaterialField
+from evcap.recon.radiance.stage import RadianceField
+from evcap.recon.scene.optics import SensorOptics, render_grid
 from evcap.records import TruthViews
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import torch
 
-from evcap.recon._raster_torch import ALPHA_MAX, ALPHA_MIN, T_MIN, project
-from evcap.recon.rasterize import Camera, Render
+from evcap.recon.raster._torch import ALPHA_MAX, ALPHA_MIN, T_MIN, project
+from evcap.recon.raster.rasterize import Camera, Render
 
 
 def composite_reference(

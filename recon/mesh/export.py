@@ -1,9 +1,9 @@
 """`evcap export`: a reconstruction as a textured mesh, the asset a digitization team keeps.
 
 The depth of stage I's Gaussians, rendered along the camera path, is fused into a truncated
-signed distance volume (recon/tsdf.py) whose zero level is the mesh, cleaned of floaters; stage
+signed distance volume (recon/mesh/tsdf.py) whose zero level is the mesh, cleaned of floaters; stage
 II's base color and roughness, rendered from the same views, are baked into textures
-(recon/bake.py). glTF 2.0's metallic-roughness material is the method's BRDF (GGX, metallic 0),
+(recon/mesh/bake.py). glTF 2.0's metallic-roughness material is the method's BRDF (GGX, metallic 0),
 so the textures are its base color and roughness as they are.
 
 Formats: .glb (glTF 2.0, binary: baseColorTexture in sRGB, metallicRoughnessTexture with
@@ -27,9 +27,9 @@ import torch
 from evcap.atomic_write import atomic_path
 from evcap.errors import InputError
 from evcap.images import srgb
-from evcap.recon.bake import View, atlas, bake, sample, texels, texture
 from evcap.recon.config import MeshConfig
-from evcap.recon.tsdf import Grid, Tsdf, largest_parts, simplified
+from evcap.recon.mesh.bake import View, atlas, bake, sample, texels, texture
+from evcap.recon.mesh.tsdf import Grid, Tsdf, largest_parts, simplified
 from evcap.records import Poses
 from evcap.records.reconstruction_folder import ReconstructionFolder
 
@@ -122,7 +122,7 @@ def export_mesh(
 ) -> MeshAsset:
     """The mesh of the reconstruction folder ``out`` (its session: the one it was made from)."""
     from evcap.recon.export import load_checkpoint, load_material_checkpoint
-    from evcap.recon.optics import SensorOptics, render_grid
+    from evcap.recon.scene.optics import SensorOptics, render_grid
     from evcap.session import Session
 
     config = config or MeshConfig()

@@ -1,11 +1,11 @@
 """Differentiable rendering of 3D Gaussians: one interface, three backends.
 
-``cpu``: compiled kernels with a hand-written backward pass (recon/_raster_cpu.py), the
+``cpu``: compiled kernels with a hand-written backward pass (recon/raster/_cpu.py), the
 default on the CPU. ``torch``: pure PyTorch, autograd for the backward pass
-(recon/_raster_torch.py): the readable reference, runs everywhere. ``gsplat``: gsplat's CUDA
-kernels (recon/_raster_gsplat.py), used on a CUDA device when gsplat is installed. All take the
+(recon/raster/_torch.py): the readable reference, runs everywhere. ``gsplat``: gsplat's CUDA
+kernels (recon/raster/_gsplat.py), used on a CUDA device when gsplat is installed. All take the
 same Gaussians and camera and return the same maps; the cpu and torch backends are tested
-against each other and against a per-pixel reference (recon/_raster_reference.py), gsplat
+against each other and against a per-pixel reference (recon/raster/_reference.py), gsplat
 against torch where a GPU is present.
 
 Conventions: the camera is OpenCV's (x right, y down, z forward), ``viewmat`` maps world to
@@ -90,7 +90,7 @@ def default_backend(device: torch.device | str) -> Backend:
     """cpu on the CPU; on a CUDA device gsplat when it imports and works, else torch."""
     if torch.device(device).type != "cuda":
         return "cpu"
-    from evcap.recon import _raster_gsplat
+    from evcap.recon.raster import _gsplat as _raster_gsplat
 
     return "gsplat" if _raster_gsplat.available() else "torch"
 
@@ -111,7 +111,7 @@ def pick_backend(name: Backend | None, device: torch.device | str) -> Backend:
         case "torch":
             pass
         case "gsplat":
-            from evcap.recon import _raster_gsplat
+            from evcap.recon.raster import _gsplat as _raster_gsplat
 
             if not on_cuda or not _raster_gsplat.available():
                 raise InputError(
@@ -162,11 +162,11 @@ def rasterize(
     _check_inputs(means, quats, scales, opacities, features)
     match backend:
         case "cpu":
-            from evcap.recon._raster_cpu import rasterize_cpu as impl
+            from evcap.recon.raster._cpu import rasterize_cpu as impl
         case "torch":
-            from evcap.recon._raster_torch import rasterize_torch as impl
+            from evcap.recon.raster._torch import rasterize_torch as impl
         case "gsplat":
-            from evcap.recon._raster_gsplat import rasterize_gsplat as impl
+            from evcap.recon.raster._gsplat import rasterize_gsplat as impl
         case _:
             assert_never(backend)
     out = impl(means, quats, scales, opacities, features, camera, near)

@@ -168,7 +168,7 @@ def local_lpips_weights() -> tuple[Path, Path] | None:
 def lpips_if_available(pred: np.ndarray, gt: np.ndarray) -> float | None:
     """LPIPS (AlexNet) of sRGB images [N, H, W, 3] when its weights are on this machine
     (local_lpips_weights); None otherwise."""
-    from evcap.recon.lpips import Lpips
+    from evcap.recon.evaluate.lpips import Lpips
 
     weights = local_lpips_weights()
     return None if weights is None else Lpips(*weights)(pred, gt)

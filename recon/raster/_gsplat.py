@@ -10,7 +10,7 @@ import functools
 
 import torch
 
-from evcap.recon.rasterize import Camera, Render, camera_normals
+from evcap.recon.raster.rasterize import Camera, Render, camera_normals
 
 
 @functools.cache

@@ -9,9 +9,9 @@ import torch
 import torch.nn.functional as F
 
 from evcap.recon.config import RadianceConfig
-from evcap.recon.neighbours import nearest
-from evcap.recon.sh import C0, eval_sh
-from evcap.recon.shading import cube_lookup
+from evcap.recon.scene.cube_map import cube_lookup
+from evcap.recon.scene.neighbours import nearest
+from evcap.recon.scene.sh import C0, eval_sh
 
 PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")
 # radiance = softplus(SH value): positive (its log is finite), linear for bright values

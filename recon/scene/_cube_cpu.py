@@ -1,7 +1,7 @@
-"""shading.cube_lookup on the CPU, compiled, for directions that take no gradient (a render's
+"""cube_map.cube_lookup on the CPU, compiled, for directions that take no gradient (a render's
 pixels, the shading's fixed directions): each direction's face, its four texels and their
 bilinear weights found in one pass, and the faces' gradient summed in another (a channel per
-thread, in the directions' order: the same sums every run). shading.cube_lookup's gathers in
+thread, in the directions' order: the same sums every run). cube_map.cube_lookup's gathers in
 PyTorch are the reference, and what runs on a GPU or when the directions need a gradient (pose
 refinement).
 """

@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from evcap.recon._threads import follow_torch_threads
-from evcap.recon.rasterize import Camera, Render
+from evcap.recon.raster.rasterize import Camera, Render
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99

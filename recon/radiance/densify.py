@@ -9,9 +9,9 @@ import math
 import torch
 
 from evcap.recon.config import RadianceConfig
-from evcap.recon.gaussians import PARAMS, Gaussians
-from evcap.recon.rasterize import Render, quat_to_rotmat
-from evcap.recon.volume import SceneVolume
+from evcap.recon.raster.rasterize import Render, quat_to_rotmat
+from evcap.recon.scene.gaussians import PARAMS, Gaussians
+from evcap.recon.scene.volume import SceneVolume
 
 
 class Densifier:

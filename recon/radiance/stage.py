@@ -22,10 +22,9 @@ import torch.nn.functional as F
 from evcap.errors import InputError
 from evcap.recon._threads import torch_on_one_thread
 from evcap.recon.config import Backend, RadianceConfig
-from evcap.recon.densify import Densifier
-from evcap.recon.event_windows import EventWindows
-from evcap.recon.gaussians import Background, Gaussians, make_optimizer, means_lr
-from evcap.recon.losses import (
+from evcap.recon.events.windows import EventWindows
+from evcap.recon.radiance.densify import Densifier
+from evcap.recon.radiance.losses import (
     anchor_loss,
     checked_loss,
     depth_curvature_loss,
@@ -34,12 +33,13 @@ from evcap.recon.losses import (
     quiet_variation_loss,
     surface_terms,
 )
-from evcap.recon.optics import CHANNEL_WEIGHTS, RenderGrid, SensorOptics, render_grid
-from evcap.recon.pose_refinement import PoseCorrections
-from evcap.recon.rasterize import Camera, Render, rasterize
+from evcap.recon.radiance.pose_refinement import PoseCorrections
+from evcap.recon.raster.rasterize import Camera, Render, rasterize
 from evcap.recon.resume import Steps, random_states, restore_random_states
+from evcap.recon.scene.gaussians import Background, Gaussians, make_optimizer, means_lr
+from evcap.recon.scene.optics import CHANNEL_WEIGHTS, RenderGrid, SensorOptics, render_grid
+from evcap.recon.scene.volume import SceneVolume, sample_points, scene_volume
 from evcap.recon.step_timer import UNTIMED, StepTimer
-from evcap.recon.volume import SceneVolume, sample_points, scene_volume
 from evcap.records import Poses
 from evcap.session import Session
 
@@ -476,7 +476,7 @@ def windows_event_loss(
 ) -> torch.Tensor:
     """The event loss of every window between two of the views ``seen`` [H * W, 3] (the
     renders at the sensor's pixels) at ``frames``, averaged (on the CPU in one compiled pass,
-    recon/_event_loss_cpu.py)."""
+    recon/events/_loss_cpu.py)."""
     w = data.windows
     with timer("events"):
         before = w.before_frames(frames)
@@ -491,7 +491,7 @@ def windows_event_loss(
         return seen[0].sum() * 0
     noise = expected_noise(data, config, frames, pairs)
     if seen[0].device.type == "cpu":
-        from evcap.recon._event_loss_cpu import event_loss_cpu
+        from evcap.recon.events._loss_cpu import event_loss_cpu
 
         return event_loss_cpu(
             seen,

@@ -135,10 +135,10 @@ class RenderGrid:
 
     def sample(self, image: torch.Tensor) -> torch.Tensor:
         """Values [H_sensor * W_sensor, C] of a render [h, w, C] at the sensor's pixels (on the
-        CPU one compiled sparse product, recon/_sample_cpu.py; elsewhere grid_sample)."""
+        CPU one compiled sparse product, recon/scene/_sample_cpu.py; elsewhere grid_sample)."""
         if image.device.type == "cpu":
             if self._sampler is None:
-                from evcap.recon._sample_cpu import Sampler
+                from evcap.recon.scene._sample_cpu import Sampler
 
                 self._sampler = Sampler.of_grid(self.grid, self.width, self.height)
             return self._sampler(image)
