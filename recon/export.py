@@ -14,9 +14,11 @@ from evcap.errors import InputError
 from evcap.images import srgb
 from evcap.recon.config import Backend
 from evcap.recon.material.stage import MaterialField
+from evcap.recon.radiance.config import RadianceConfig
 from evcap.recon.radiance.stage import RadianceField
 from evcap.recon.scene.gaussians import Background, Gaussians
 from evcap.recon.scene.sh import C0
+from evcap.recon.settings import from_dict
 from evcap.records.reconstruction_folder import ReconstructionFolder, Renders, Split
 
 
@@ -136,18 +138,42 @@ def _save(data: dict, path: Path) -> None:
 
 def load_checkpoint(
     path: Path, device: str = "cpu", backend: Backend = "cpu"
-) -> tuple[RadianceField, dict]:
-    """(RadianceField, settings) from a stage-I checkpoint written by save_checkpoint."""
-    if not path.exists():
-        raise InputError(f"{path}: no stage-I checkpoint; run `evcap reconstruct --stage radiance`")
+) -> tuple[RadianceField, RadianceConfig]:
+    """(RadianceField, the settings it was fitted with) from a stage-I checkpoint written by
+    save_checkpoint."""
+    state = _read_stage_one(path)
+    config = _stage_one_config(state, path)
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
         gaussians = Gaussians.from_state(state["gaussians"])
         background = Background.from_faces(state["background"])
     except (KeyError, RuntimeError, ValueError) as e:
         raise InputError(f"{path}: not a readable stage-I checkpoint ({e})") from e
-    backdrop = state["config"].get("known_background")
-    return RadianceField(gaussians, background, backend, backdrop).to(device), state["config"]
+    field = RadianceField(gaussians, background, backend, config.background.known)
+    return field.to(device), config
+
+
+def read_stage_one_settings(path: Path) -> RadianceConfig:
+    """The settings a stage-I checkpoint was fitted with."""
+    return _stage_one_config(_read_stage_one(path), path)
+
+
+def _read_stage_one(path: Path) -> dict:
+    if not path.exists():
+        raise InputError(f"{path}: no stage-I checkpoint; run `evcap reconstruct --stage radiance`")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except (RuntimeError, ValueError, EOFError, OSError) as e:
+        raise InputError(f"{path}: not a readable stage-I checkpoint ({e})") from e
+
+
+def _stage_one_config(state: dict, path: Path) -> RadianceConfig:
+    try:
+        return from_dict(RadianceConfig, state["config"])
+    except (KeyError, TypeError, InputError) as e:
+        raise InputError(
+            f"{path}: its settings are not those this evcap reads ({e}): an earlier evcap saved "
+            "it; fit stage I again (`evcap reconstruct --stage radiance --force`)"
+        ) from None
 
 
 def load_material_checkpoint(

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import assert_never
 
@@ -17,22 +18,8 @@ import numpy as np
 import torch
 
 from evcap.errors import InputError
-from evcap.recon import config as cfg
 from evcap.recon import resume as resume_
-from evcap.recon.config import (
-    ABLATIONS,
-    DEVICES,
-    REFINE_POSES,
-    STAGES,
-    Ablation,
-    Backend,
-    Device,
-    EffectMode,
-    Preset,
-    RefinePoses,
-    Stage,
-    ZeroEvents,
-)
+from evcap.recon.config import ABLATIONS, DEVICES, Backend, Device, Stage
 from evcap.recon.evaluate.metrics import image_metrics, normal_mae_deg, object_metrics
 from evcap.recon.evaluate.views import (
     material_metrics,
@@ -43,12 +30,14 @@ from evcap.recon.evaluate.views import (
 )
 from evcap.recon.export import (
     load_checkpoint,
+    read_stage_one_settings,
     save_checkpoint,
     save_material_checkpoint,
     write_image,
     write_ply,
     write_views,
 )
+from evcap.recon.material.config import MaterialConfig
 from evcap.recon.material.stage import (
     MaterialFit,
     environment_image,
@@ -56,6 +45,8 @@ from evcap.recon.material.stage import (
     resume_misfit,
     train_material,
 )
+from evcap.recon.options import Feedback, ReconstructOptions, Resume
+from evcap.recon.radiance.config import RadianceConfig
 from evcap.recon.radiance.stage import (
     Fit,
     RadianceField,
@@ -66,6 +57,7 @@ from evcap.recon.radiance.stage import (
 from evcap.recon.raster.rasterize import pick_backend
 from evcap.recon.scene.cube_map import mip_chain
 from evcap.recon.scene.optics import SensorOptics
+from evcap.recon.settings import to_dict
 from evcap.records import (
     Figures,
     GroundTruth,
@@ -78,9 +70,9 @@ from evcap.records.reconstruction_folder import Training
 from evcap.session import Session
 from evcap.trajectory_alignment import apply_similarity, pose_errors
 
+DEFAULTS, SILENT = ReconstructOptions(), Feedback()
 TRACK_VIEWS = 8  # views rendered along the path when the session has no held-out views
 HISTORY_VIEWS = 2  # held-out views rendered for the accuracy-versus-time curve
-ESTIMATED = ("evcap poses", "evcap reconstruct")  # sources of poses --refine-poses auto refines
 
 
 def pick_device(name: Device) -> Device:
@@ -127,197 +119,213 @@ def read_environment(path: str | Path) -> np.ndarray:
     return image
 
 
+@dataclass(frozen=True)
+class Plan:
+    """What a reconstruction will do, settled before it reads the events: the stages it runs,
+    their settings (stage I's from OUT's checkpoint when it runs stage II alone), the device
+    and rasterizer, the new light."""
+
+    options: ReconstructOptions
+    out: ReconstructionFolder
+    runs: tuple[Training, ...]
+    stage1: RadianceConfig
+    stage2: MaterialConfig
+    device: Device
+    backend: Backend
+    environment: np.ndarray | None  # --relight's, linear
+
+    @property
+    def fits_radiance(self) -> bool:
+        return "radiance" in self.runs
+
+    @property
+    def fits_material(self) -> bool:
+        return "material" in self.runs
+
+    def saved_settings(self, session: Session) -> dict[Training, dict]:
+        """What each stage's saved state is checked against before it is gone on from."""
+        o = self.options
+        stage1 = {"config": to_dict(self.stage1), "seed": o.seed}
+        stage1["session"] = resume_.session_fingerprint(session)
+        stage2 = {**stage1, "material": to_dict(self.stage2), "ablate": sorted(o.ablate)}
+        return {"radiance": stage1, "material": stage2}
+
+
+@dataclass
+class Run:
+    """A reconstruction under way: the training data, the saved states it goes on from, the
+    truth it is scored on, the field stage II starts from, the result so far."""
+
+    data: TrainingData
+    settings: dict[Training, dict]  # Plan.saved_settings
+    states: dict[Training, dict | None]
+    truth: TruthViews
+    gt: GroundTruth | None
+    environment: np.ndarray | None  # the new light: --relight's, or the truth's second light
+    result: ReconstructionResult
+    before: ReconstructionResult  # what OUT's metrics.json held, when a stage goes on
+    field: RadianceField | None = None
+    stopped: bool = False
+
+    def poses_of(self, track: Poses) -> np.ndarray:
+        return _view_poses(track, self.data.windows.frame_times, self.truth, self.gt)
+
+
 def reconstruct(
     session_path: str | Path,
     out: str | Path,
-    *,
-    preset: Preset = "fast",
-    stage: Stage = "all",
-    device: Device = "cpu",
-    backend: Backend | None = None,
-    resolution: float | None = None,
-    iterations: int | None = None,
-    material_iterations: int | None = None,
-    seed: int = 0,
-    zero_events: ZeroEvents | None = None,
-    radiance_settings: dict | None = None,
-    material_settings: dict | None = None,
-    visibility: EffectMode | None = None,
-    indirect: EffectMode | None = None,
-    ablate: tuple[Ablation, ...] = (),
-    relight: str | Path | None = None,
-    refine_poses: RefinePoses = "auto",
-    write_poses: bool = False,
-    overwrite: bool = False,
-    resume: bool = True,
-    say: Callable[[str], None] = lambda line: None,
-    progress: Callable[[int, int, str], None] | None = None,
+    options: ReconstructOptions = DEFAULTS,
+    feedback: Feedback = SILENT,
 ) -> ReconstructionResult:
-    """Run the reconstruction; returns what it wrote to OUT/metrics.json. ``radiance_settings``,
-    ``material_settings``: stage I's and stage II's (RadianceConfig's, MaterialConfig's fields)
-    over the preset's. With ``resume``, a
-    stage interrupted in OUT with the same session and settings goes on from where it
-    stopped; ``overwrite`` lets a finished (or differently started) one be replaced.
-    ``refine_poses``: stage I refines the trajectory (auto: when evcap estimated it) and writes
-    it to OUT/poses.h5; ``write_poses`` also makes it the session's /poses."""
-    if stage not in STAGES:
-        raise InputError(f"unknown stage {stage!r}; expected one of {', '.join(STAGES)}")
-    if refine_poses not in REFINE_POSES:
-        raise InputError(f"--refine-poses must be one of {', '.join(REFINE_POSES)}")
-    if set(ablate) - set(ABLATIONS):
-        raise InputError(f"unknown ablation(s) {sorted(set(ablate) - set(ABLATIONS))}")
-    runs = _trainings(stage)
-    fits_radiance, fits_material = "radiance" in runs, "material" in runs
-    out = ReconstructionFolder(out)
-    named = {"iterations": material_iterations, "visibility": visibility, "indirect": indirect}
-    named = {k: v for k, v in named.items() if v is not None}
-    mconfig = cfg.material_preset(preset, **{**(material_settings or {}), **named})
-    environment = read_environment(relight) if relight is not None else None
-    device = pick_device(device)
-    backend = pick_backend(backend, device)
-    if not fits_radiance:
-        field, settings = load_checkpoint(out.checkpoint("radiance"), device, backend)
-        config = cfg.RadianceConfig(**settings)
-    else:
-        named = {"resolution": resolution, "iterations": iterations, "zero_events": zero_events}
-        named = {k: v for k, v in named.items() if v is not None}
-        overrides = {**(radiance_settings or {}), **named}
-        config = cfg.preset(preset, **overrides)
+    """Run the reconstruction as ``options`` say; returns what it wrote to OUT/metrics.json.
+    A stage interrupted in OUT goes on from where it stopped, or starts over, as
+    ``options.resume`` says; stage I refines the trajectory when its settings say so
+    (stage1.poses.refine) and writes it to OUT/poses.h5."""
+    plan = plan_reconstruction(out, options)
     started = time.perf_counter()
     with Session.open(session_path) as session:
-        if fits_radiance and Poses.present(session):  # else a clear error comes below
-            refines = _refines(refine_poses, Poses.read(session))
-            config = dataclasses.replace(config, refine_poses=refines)
-        session_id = resume_.session_fingerprint(session)
-        settings = {
-            "radiance": {"config": cfg.to_dict(config), "seed": seed, "session": session_id},
-        }
-        settings["material"] = {
-            **settings["radiance"],
-            "material": cfg.to_dict(mconfig),
-            "ablate": sorted(ablate),
-        }
-        states = _saved_states(out, runs, settings, resume, overwrite, say)
-        if fits_radiance and states["radiance"] is None and states["material"] is not None:
-            field, _ = load_checkpoint(out.checkpoint("radiance"), device, backend)
-        stage_one = field if states["material"] is not None else None
-        data = _data_to_go_on_with(session, config, device, out, states, stage_one, overwrite, say)
-        # stage I is not run again for stage II alone, nor to go on with an interrupted stage II
-        skip = not fits_radiance or states["material"] is not None
-        if skip and out.poses.exists():  # stage II goes on the path stage I refined
-            data.track = Poses.read_file(out.poses)
-        gt = GroundTruth.read(session) if GroundTruth.present(session) else None
-        truth = gt.held_out_views() if gt is not None else TruthViews(np.zeros((0, 4, 4)))
-        if environment is not None:  # another light than the truth's: shown, not scored
-            truth = truth.without("relit_radiance")
-        elif gt is not None and truth.relit_radiance is not None:
-            environment = gt.relight_environment.astype(np.float64)
+        run = _start(plan, session, feedback.say)
+        if plan.fits_radiance and run.states["material"] is None:
+            _stage_one(plan, run, feedback, started)
+        if plan.fits_material and not run.stopped:
+            _stage_two(plan, run, session, feedback)
+    _write(plan, run, session_path)
+    return run.result
 
-        def poses_of(track: Poses) -> np.ndarray:
-            return _view_poses(track, data.windows.frame_times, truth, gt)
 
-        poses = poses_of(data.track)
-        out.root.mkdir(parents=True, exist_ok=True)
-        resumed = skip or states["radiance"] is not None
-        before = out.previous_result() if resumed else ReconstructionResult()
-        result = before if skip else ReconstructionResult()
-        stopped = False
-        if not skip:
-            if states["radiance"] is not None:
-                say(_going_on("stage I", states["radiance"], config.iterations))
-            fit, figures, data.track = _stage_radiance(
-                data,
-                config,
-                poses_of,
-                truth,
-                out,
-                seed,
-                device,
-                backend,
-                progress,
-                states["radiance"],
-                settings["radiance"],
-            )
-            field = fit.field
-            poses = poses_of(data.track)
-            result.figures = Figures.of(figures)
-            result.seconds = time.perf_counter() - started
-            if states["radiance"] is not None:  # and the time it took before
-                result.seconds += before.seconds or 0.0
-            result.preset, result.seed, result.zero_events = preset, seed, config.zero_events
-            result.iterations, result.gaussians = fit.steps, len(field.gaussians)
-            result.device, result.backend = device, backend
-            result.interrupted, result.history = fit.interrupted, fit.history
-            result.training_log["radiance"] = [dataclasses.asdict(x) for x in fit.log]
-            stopped = fit.interrupted
-        if fits_material and not stopped:
-            if states["material"] is not None:
-                say(_going_on("stage II", states["material"], mconfig.iterations))
-            earlier = (before.material_seconds or 0.0) if states["material"] is not None else 0.0
-            started = time.perf_counter()
-            path = out.training_state("material")
-            mfit = train_material(
-                field,
-                data,
-                session,
-                config,
-                mconfig,
-                seed=seed,
-                device=device,
-                progress=progress,
-                ablate=frozenset(ablate),
-                resume=states["material"],
-                save_state=lambda state: resume_.save_state(path, state, settings["material"]),
-            )
-    if fits_material and not stopped:
-        figures = result.figures
-        if figures.normal_mae_deg is not None and figures.radiance_normal_mae_deg is None:
-            figures.radiance_normal_mae_deg = figures.normal_mae_deg
-        found = _material_outputs(mfit, field, poses, truth, data.optics, environment, out, device)
-        result.figures = dataclasses.replace(figures, **Figures.of(found).measured())
-        result.material_iterations = mfit.steps
-        result.effects = {**mfit.field.effects, **{k: k not in ablate for k in ABLATIONS}}
-        result.effect_variation = mfit.field.start_variation or None
-        result.relit = environment is not None
-        result.material_seconds = time.perf_counter() - started + earlier
-        result.interrupted = mfit.interrupted
-        result.training_log["material"] = [dataclasses.asdict(x) for x in mfit.log]
-        if not mfit.interrupted:
-            out.training_state("material").unlink(missing_ok=True)
-    result.views = "held-out test views" if truth.maps() else "views along the camera path"
+def plan_reconstruction(out: str | Path, options: ReconstructOptions) -> Plan:
+    """The stages, their settings, the device and rasterizer, the new light; every option
+    checked before the session is read."""
+    runs = _trainings(options.stage)
+    folder = ReconstructionFolder(out)
+    settings = options.resolved()
+    environment = read_environment(options.relight) if options.relight is not None else None
+    device = pick_device(options.device)
+    backend = pick_backend(options.backend, device)
+    stage1 = settings.stage1
+    if "radiance" not in runs:
+        stage1 = read_stage_one_settings(folder.checkpoint("radiance"))
+    return Plan(options, folder, runs, stage1, settings.stage2, device, backend, environment)
+
+
+def _start(plan: Plan, session: Session, say: Callable[[str], None]) -> Run:
+    """The saved states to go on from, the training data, the truth."""
+    out = plan.out
+    settings = plan.saved_settings(session)
+    states = _saved_states(out, plan.runs, settings, plan.options.resume, say)
+    field = None
+    if not plan.fits_radiance or states["material"] is not None:
+        field, _ = load_checkpoint(out.checkpoint("radiance"), plan.device, plan.backend)
+    stage_one = field if states["material"] is not None else None
+    start_over = plan.options.resume != "go on"
+    data = _data_to_go_on_with(
+        session, plan.stage1, plan.device, out, states, stage_one, start_over, say
+    )
+    # stage I is not run again for stage II alone, nor to go on with an interrupted stage II
+    if field is not None and out.poses.exists():  # stage II goes on the path stage I refined
+        data.track = Poses.read_file(out.poses)
+    gt = GroundTruth.read(session) if GroundTruth.present(session) else None
+    truth = gt.held_out_views() if gt is not None else TruthViews(np.zeros((0, 4, 4)))
+    environment = plan.environment
+    if environment is not None:  # another light than the truth's: shown, not scored
+        truth = truth.without("relit_radiance")
+    elif gt is not None and truth.relit_radiance is not None:
+        environment = gt.relight_environment.astype(np.float64)
+    out.root.mkdir(parents=True, exist_ok=True)
+    going_on = field is not None or states["radiance"] is not None
+    before = out.previous_result() if going_on else ReconstructionResult()
+    result = before if field is not None else ReconstructionResult()
+    return Run(data, settings, states, truth, gt, environment, result, before, field)
+
+
+def _stage_one(plan: Plan, run: Run, feedback: Feedback, started: float) -> None:
+    """Stage I, its outputs, and its part of the result."""
+    config, state = plan.stage1, run.states["radiance"]
+    if state is not None:
+        feedback.say(_going_on("stage I", state, config.iterations))
+    fit, figures, run.data.track = _stage_radiance(plan, run, feedback.progress)
+    run.field = fit.field
+    result = run.result
+    result.figures = Figures.of(figures)
+    result.seconds = time.perf_counter() - started
+    if state is not None:  # and the time it took before
+        result.seconds += run.before.seconds or 0.0
+    o = plan.options
+    result.preset, result.seed = o.preset, o.seed
+    result.zero_events = config.event_loss.zero_events
+    result.iterations, result.gaussians = fit.steps, len(fit.field.gaussians)
+    result.device, result.backend = plan.device, plan.backend
+    result.interrupted, result.history = fit.interrupted, fit.history
+    result.training_log["radiance"] = [dataclasses.asdict(x) for x in fit.log]
+    run.stopped = fit.interrupted
+
+
+def _stage_two(plan: Plan, run: Run, session: Session, feedback: Feedback) -> None:
+    """Stage II, its outputs, and its part of the result."""
+    state, out = run.states["material"], plan.out
+    if state is not None:
+        feedback.say(_going_on("stage II", state, plan.stage2.iterations))
+    earlier = (run.before.material_seconds or 0.0) if state is not None else 0.0
+    started = time.perf_counter()
+    path = out.training_state("material")
+    fit = train_material(
+        run.field,
+        run.data,
+        session,
+        plan.stage1,
+        plan.stage2,
+        seed=plan.options.seed,
+        device=plan.device,
+        progress=feedback.progress,
+        ablate=frozenset(plan.options.ablate),
+        resume=state,
+        save_state=lambda s: resume_.save_state(path, s, run.settings["material"]),
+    )
+    result = run.result
+    figures = result.figures
+    if figures.normal_mae_deg is not None and figures.radiance_normal_mae_deg is None:
+        figures.radiance_normal_mae_deg = figures.normal_mae_deg
+    poses = run.poses_of(run.data.track)
+    found = _material_outputs(
+        fit, run.field, poses, run.truth, run.data.optics, run.environment, out, plan.device
+    )
+    result.figures = dataclasses.replace(figures, **Figures.of(found).measured())
+    result.material_iterations = fit.steps
+    ablate = plan.options.ablate
+    result.effects = {**fit.field.effects, **{k: k not in ablate for k in ABLATIONS}}
+    result.effect_variation = fit.field.start_variation or None
+    result.relit = run.environment is not None
+    result.material_seconds = time.perf_counter() - started + earlier
+    result.interrupted = fit.interrupted
+    result.training_log["material"] = [dataclasses.asdict(x) for x in fit.log]
+    if not fit.interrupted:
+        path.unlink(missing_ok=True)
+
+
+def _write(plan: Plan, run: Run, session_path: str | Path) -> None:
+    """OUT/config.toml and OUT/metrics.json; the refined poses into the session when asked."""
+    o, out, result = plan.options, plan.out, run.result
+    result.views = "held-out test views" if run.truth.maps() else "views along the camera path"
     sections = {
         "reconstruct": {
             "session": str(session_path),
-            "stage": stage,
-            "preset": preset,
-            "device": device,
-            "backend": backend,
-            "seed": seed,
-            "ablate": ",".join(ablate),
-            "relight": str(relight) if relight else None,
+            "stage": o.stage,
+            "preset": o.preset,
+            "device": plan.device,
+            "backend": plan.backend,
+            "seed": o.seed,
+            "ablate": ",".join(o.ablate),
+            "relight": str(o.relight) if o.relight else None,
         },
-        "radiance": cfg.to_dict(config),
+        "stage1": to_dict(plan.stage1),
     }
-    if fits_material:
-        sections["material"] = cfg.to_dict(mconfig)
+    if plan.fits_material:
+        sections["stage2"] = to_dict(plan.stage2)
     out.write_config(sections)
     out.write_result(result)
     # an interrupted run's poses are not the session's yet: it goes on from the session's
-    if write_poses and out.poses.exists() and not result.interrupted:
+    if o.write_poses and out.poses.exists() and not result.interrupted:
         Poses.read_file(out.poses).write(session_path)
-    return result
-
-
-def _refines(choice: RefinePoses, track: Poses) -> bool:
-    match choice:
-        case "on":
-            return True
-        case "off":
-            return False
-        case "auto":
-            return track.source.startswith(ESTIMATED)
-        case _:
-            assert_never(choice)
 
 
 def _view_poses(
@@ -343,15 +351,15 @@ def _saved_states(
     out: ReconstructionFolder,
     runs: tuple[Training, ...],
     settings: dict,
-    resume: bool,
-    overwrite: bool,
+    resume: Resume,
     say: Callable[[str], None],
 ) -> dict[Training, dict | None]:
     """The training states to go on from ({"radiance": ..., "material": ...}, None where a
-    stage starts afresh); refuses to replace what OUT holds unless ``overwrite``, and says
-    why a saved state is not gone on from."""
+    stage starts afresh), as ``resume`` says: what OUT holds is replaced only when it may
+    start over; why a saved state is not gone on from is said."""
     states: dict[Training, dict | None] = {"radiance": None, "material": None}
-    for name in runs if resume else ():
+    start_over = resume != "go on"
+    for name in runs if resume != "start over" else ():
         path = out.training_state(name)
         try:
             state = resume_.load_state(path)
@@ -361,12 +369,12 @@ def _saved_states(
             why = resume_.misfit(state, settings[name]) if state is not None else ""
             remedy = resume_.remedy(state) if why else ""
         if why:
-            _refuse_or_say(out, name, why, remedy, overwrite, say)
+            _refuse_or_say(out, name, why, remedy, start_over, say)
         states[name] = None if why else state
     if states["radiance"] is not None:
         states["material"] = None  # stage II starts afresh after it
     nothing_saved = all(v is None for v in states.values())
-    if nothing_saved and out.stage_done(runs[0]) and not overwrite:
+    if nothing_saved and out.stage_done(runs[0]) and not start_over:
         raise InputError(
             f"{out} already holds a reconstruction; choose another folder or pass --force"
         )
@@ -379,18 +387,18 @@ def _saved_states(
 
 def _data_to_go_on_with(
     session: Session,
-    config: cfg.RadianceConfig,
+    config: RadianceConfig,
     device: Device,
     out: ReconstructionFolder,
     states: dict[Training, dict | None],
     stage_one: RadianceField | None,
-    overwrite: bool,
+    start_over: bool,
     say: Callable[[str], None],
 ) -> TrainingData:
     """The training data; for a stage that goes on, with what it derived at its start, once
     the checks that need the session's events (and for stage II, the stage I beside it, the
     ``stage_one`` field, and the path it refined) find its state fits. One that does not is
-    refused, or with ``overwrite`` said and dropped (from ``states`` and OUT)."""
+    refused, or where it may ``start_over`` said and dropped (from ``states`` and OUT)."""
     name: Training = "radiance" if states["radiance"] is not None else "material"
     state = states[name]
     if state is None:
@@ -404,7 +412,7 @@ def _data_to_go_on_with(
         why = resume_misfit(state, stage_one, track)
     if not why:
         return data
-    _refuse_or_say(out, name, why, "pass --force to start over", overwrite, say)
+    _refuse_or_say(out, name, why, "pass --force to start over", start_over, say)
     states[name] = None
     out.training_state(name).unlink(missing_ok=True)
     return load_training_data(session, config, device)
@@ -415,13 +423,13 @@ def _refuse_or_say(
     name: Training,
     why: str,
     remedy: str,
-    overwrite: bool,
+    start_over: bool,
     say: Callable[[str], None],
 ) -> None:
-    """A saved state that cannot be gone on with: refused (InputError), or with ``overwrite``
-    said, for the stage to start over."""
+    """A saved state that cannot be gone on with: refused (InputError), or where the stage may
+    ``start_over`` said, for it to start over."""
     stage = "stage I" if name == "radiance" else "stage II"
-    if not overwrite:
+    if not start_over:
         raise InputError(
             f"{out} holds a reconstruction interrupted in {stage} that cannot be gone on with "
             f"({why}); {remedy}"
@@ -437,20 +445,13 @@ def _going_on(name: str, state: dict, iterations: int) -> str:
 
 
 def _stage_radiance(
-    data: TrainingData,
-    config: cfg.RadianceConfig,
-    poses_of: Callable[[Poses], np.ndarray],
-    truth: TruthViews,
-    out: ReconstructionFolder,
-    seed: int,
-    device: Device,
-    backend: Backend,
-    progress: Callable[[int, int, str], None] | None,
-    state: dict | None,
-    settings: dict,
+    plan: Plan, run: Run, progress: Callable[[int, int, str], None] | None
 ) -> tuple[Fit, dict[str, float | None], Poses]:
-    """Stage I and its outputs; (the fit, its figures on the views at ``poses_of`` the
-    trajectory, the trajectory: refined when the config says so, written to OUT/poses.h5)."""
+    """Stage I and its outputs; (the fit, its figures on the views at ``run.poses_of`` the
+    trajectory, the trajectory: refined when the settings say so, written to OUT/poses.h5)."""
+    data, truth, out, device = run.data, run.truth, plan.out, plan.device
+    config = plan.stage1
+    poses_of = run.poses_of
     poses = poses_of(data.track)  # the evaluations along the way: the input's
 
     def evaluate(field: RadianceField) -> dict:
@@ -468,13 +469,13 @@ def _stage_radiance(
     fit = train_radiance(
         data,
         config,
-        seed=seed,
+        seed=plan.options.seed,
         device=device,
-        backend=backend,
+        backend=plan.backend,
         progress=progress,
         evaluate=evaluate if truth.radiance is not None else None,
-        resume=state,
-        save_state=lambda s: resume_.save_state(path, s, settings),
+        resume=run.states["radiance"],
+        save_state=lambda s: resume_.save_state(path, s, run.settings["radiance"]),
     )
     field = fit.field
     track = data.track
@@ -490,7 +491,7 @@ def _stage_radiance(
     write_views(
         views, out, "radiance", "test" if scored else "path", shown_gain(views["radiance"], truth)
     )
-    save_checkpoint(field, cfg.to_dict(config), out.checkpoint("radiance"))
+    save_checkpoint(field, to_dict(config), out.checkpoint("radiance"))
     if not fit.interrupted:
         path.unlink(missing_ok=True)
     return fit, figures, track

@@ -51,8 +51,9 @@ def stop_after_step() -> Iterator[Callable[[], bool]]:
 
 
 # the layout of a saved training state: raised whenever what a state holds changes (2: what the
-# stages derived at their start kept in it)
-STATE_FORMAT = 2
+# stages derived at their start kept in it; 3: the settings nested by component, the
+# densification's state under "densify")
+STATE_FORMAT = 3
 
 
 def digest(*parts: np.ndarray | torch.Tensor | object) -> str:
@@ -139,16 +140,18 @@ def remedy(state: dict) -> str:
     return "run the command it was started with to go on, or pass --force to start over"
 
 
-def _flat(settings: dict) -> dict:
-    """Settings as one level: stage I's config fields by their names, stage II's after "stage
-    II's", then the seed, the session and the ablations."""
+def _flat(settings: dict, prefix: str = "") -> dict:
+    """Settings as one level, by the names a user gives them: stage I's and stage II's configs
+    by their dotted names (stage1.densify.every), then the seed, the session, the ablations."""
     out = {}
     for key, value in settings.items():
+        name = prefix + (
+            key if prefix else {"config": "stage1", "material": "stage2"}.get(key, key)
+        )
         if isinstance(value, dict):
-            prefix = "stage II's " if key == "material" else ""
-            out.update({prefix + k: v for k, v in value.items()})
+            out.update(_flat(value, name + "."))
         else:
-            out[key] = value
+            out[name] = value
     return out
 
 

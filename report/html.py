@@ -121,7 +121,7 @@ def write_report(out: str | Path, session: str | Path | None = None) -> Path:
             "session": _session_section(s, run),
             "calibration": _calibration_section(s),
             "trajectory": _trajectory_section(s),
-            "edges": _edges_section(s, folder.settings("material")),
+            "edges": _edges_section(s, folder.settings("stage2")),
             "maps": _maps_section(folder, s),
         }
     bodies["relit"] = _relit_section(folder)
@@ -435,7 +435,8 @@ def _edges_section(s: Session, material: dict) -> str:
     span = s.time_range()
     if span is None or s.n_events == 0:
         return _missing("The session has no events.")
-    slice_us = round(float(material.get("edge_slice_ms", EDGE_SLICE_MS)) * 1000)
+    slice_ms = material.get("edges", {}).get("slice_ms", EDGE_SLICE_MS)
+    slice_us = round(float(slice_ms) * 1000)
     if span[1] - span[0] < slice_us:
         return _missing("The session is shorter than one edge map's slice of events.")
     w, h = s.sensor.width, s.sensor.height

@@ -1,12 +1,12 @@
 """bench/split.toml: settings are chosen on the tuning set, figures reported on another; each
-preset says what it was tuned on (recon.config.TUNED_ON), and none names what is reported."""
+preset says what it was tuned on (recon.presets.TUNED_ON), and none names what is reported."""
 
 import tomllib
 from pathlib import Path
 
 import pytest
 
-from evcap.recon.config import MATERIAL_PRESETS, PRESETS, TUNED_ON, TunedOn
+from evcap.recon.presets import MATERIAL_PRESETS, PRESETS, TUNED_ON, TunedOn
 
 SPLIT = Path(__file__).parents[1] / "bench" / "split.toml"
 

@@ -1,6 +1,7 @@
 """OUT/, the folder `evcap reconstruct` writes, and the one place that names its files:
 
-    config.toml            the settings it ran with; [reconstruct] names the session
+    config.toml            the settings it ran with ([stage1], [stage2]: by their dotted names,
+                           `evcap reconstruct --settings` reads it); [reconstruct] names the session
     metrics.json           what it found (records.result.ReconstructionResult)
     gaussians.ply          stage I's Gaussians (3DGS layout)
     poses.h5               stage I's refined camera path, when it refined it
@@ -28,7 +29,7 @@ from evcap.records.result import ReconstructionResult
 
 Training = Literal["radiance", "material"]  # stage I, stage II
 # config.toml's tables: how the run was asked for (the session named), each stage's settings
-Section = Literal["reconstruct", "radiance", "material"]
+Section = Literal["reconstruct", "stage1", "stage2"]
 Renders = Literal["radiance", "material", "relit"]  # stage I's, stage II's, relit views
 Split = Literal["test", "path"]  # the held-out views, or views along the camera path
 # a rendered view's maps, each a PNG (radiance_gain: after the one gain per channel)
@@ -173,10 +174,13 @@ class ReconstructionFolder:
     # -- settings and results ------------------------------------------------------------------
 
     def write_config(self, sections: dict[str, dict]) -> None:
-        """The settings as a flat TOML of scalars (and lists of numbers), one table per section."""
-        lines = []
-        for section, values in sections.items():
-            lines.append(f"[{section}]")
+        """The settings as TOML, one table per section, a nested dict a table under it
+        ([stage1.densify]); scalars and lists of numbers (None left out)."""
+        lines: list[str] = []
+
+        def table(name: str, values: dict) -> None:
+            lines.append(f"[{name}]")
+            nested = {k: v for k, v in values.items() if isinstance(v, dict)}
             for k, v in values.items():
                 if isinstance(v, bool):
                     lines.append(f"{k} = {str(v).lower()}")
@@ -184,9 +188,14 @@ class ReconstructionFolder:
                     lines.append(f"{k} = {v!r}")
                 elif isinstance(v, list | tuple) and all(isinstance(x, int | float) for x in v):
                     lines.append(f"{k} = [{', '.join(repr(x) for x in v)}]")
-                elif v is not None:
+                elif v is not None and k not in nested:
                     lines.append(f"{k} = {json.dumps(str(v))}")
             lines.append("")
+            for k, v in nested.items():
+                table(f"{name}.{k}", v)
+
+        for section, values in sections.items():
+            table(section, values)
         write_text_atomic(self.config, "\n".join(lines))
 
     def read_config(self) -> dict:

@@ -2,8 +2,8 @@
 channel and its log taken, the change between two views compared with the window's C_on ON -
 C_off OFF, the pixels with and without events averaged apart, every window at once, in one
 pass over the sensor's pixels, and its gradient in another, where PyTorch takes some thirty
-operations over them a window each way. losses.event_loss window by window
-(radiance.windows_event_loss) is the reference, and what runs on a GPU.
+operations over them a window each way. loss.py's reference (loss.window_loss window by
+window) is what it is tested against, and what runs on a GPU.
 
 Sums are taken in float64 in CHUNKS runs of pixels, then added in order: a run repeats bit for
 bit whatever the number of threads.
@@ -174,7 +174,7 @@ def event_loss_cpu(
     crowded: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The mean over the windows ``pairs`` (i, j) between the views ``seen`` ([P, 3] each, at
-    the sensor's pixels) of losses.event_loss of log(L_j) - log(L_i) in each pixel's channel
+    the sensor's pixels) of loss.window_loss of log(L_j) - log(L_i) in each pixel's channel
     (``channel_weights`` [P, 3]) against the events counted by ``before`` [K, 2 P], less each
     window's expected noise events ``noise`` [windows, 2] (ON, OFF), the crowded ones counted
     by ``crowded`` [K, 2 P] (None: none)."""

@@ -29,15 +29,62 @@ import numpy as np
 import torch
 
 from evcap.errors import InputError
+from evcap.event_filters import (
+    CROWDED_PERIODS,
+    BackgroundActivityFilter,
+    Compose,
+    RefractoryMarking,
+)
 from evcap.recon._threads import follow_torch_threads
-from evcap.recon.events.noise_filter import supported
 from evcap.recon.resume import digest
 from evcap.recon.scene.optics import SensorOptics
 from evcap.session import Session
 
 MIN_EVENTS = 500  # fewer than this say nothing of a scene: refused before minutes of fitting
-# an event this many refractory periods or less after its pixel's previous one is crowded
-CROWDED_PERIODS = 2.0
+
+
+@dataclass(frozen=True)
+class WindowsConfig:
+    """The events' time grid, what is counted, and the windows a training step draws."""
+
+    frame_interval_ms: float = 5.0
+    """One rendered frame every this many ms at most: the grid windows start and end on."""
+    max_frames: int = 4000
+    """The grid is made coarser for recordings longer than this many frames."""
+    max_window_frames: int = 150
+    """A window spans 1..this many frame intervals (long ones carry the edges' changes across
+    flat regions)."""
+    views_per_step: int = 3
+    """Renders per step; every two of them make a window."""
+    noise_filter_ms: float = 0.0
+    """A background-activity filter (evcap.event_filters): only the events a neighbour's
+    supports within this many ms are counted (0: all); for dim light, where noise is a
+    sizeable share of the events."""
+    refractory_bound: bool = False
+    """A window whose pixel fired crowded events (closer than twice the calibration's
+    refractory period) measures only part of its change: they are counted apart, and the loss
+    takes its C_on ON - C_off OFF as a lower bound on the change's size, in its direction."""
+
+    def __post_init__(self) -> None:
+        if self.frame_interval_ms <= 0 or self.max_frames < 2 or self.max_window_frames < 1:
+            raise InputError(
+                "windows.frame_interval_ms must be > 0, max_frames >= 2, max_window_frames >= 1"
+            )
+        if self.views_per_step < 2:
+            raise InputError("windows.views_per_step must be at least 2 (a window needs two)")
+        if self.noise_filter_ms < 0:
+            raise InputError("windows.noise_filter_ms must be 0 (no filter) or a positive time")
+
+    def draw(self, rng: np.random.Generator, frames: int) -> np.ndarray:
+        """views_per_step frame indices among ``frames``, increasing, each 1..max_window_frames
+        after the last."""
+        gaps = rng.integers(1, self.max_window_frames + 1, self.views_per_step - 1)
+        span = int(gaps.sum())
+        if span >= frames:
+            gaps = np.maximum(gaps * (frames - 1) // span, 1)
+            span = int(gaps.sum())
+        start = int(rng.integers(0, max(frames - span, 1)))
+        return np.minimum(start + np.concatenate([[0], np.cumsum(gaps)]), frames - 1)
 
 
 @dataclass
@@ -59,16 +106,17 @@ class EventWindows:
         optics: SensorOptics,
         t_start: int,
         t_end: int,
-        interval_us: int,
-        max_frames: int,
+        config: WindowsConfig = WindowsConfig(),
         device: torch.device | str = "cpu",
-        refractory_us: float = 0.0,
-        noise_filter_us: float = 0.0,
     ) -> EventWindows:
-        """Frames every ``interval_us`` (or coarser, to stay within ``max_frames``) over
-        [t_start, t_end], with the events between them; with a ``refractory_us`` > 0, the
-        crowded events counted again in ``crowded``; with a ``noise_filter_us`` > 0, only the
-        events a neighbour's supports within that time (noise_filter.py)."""
+        """Frames every config.frame_interval_ms (or coarser, to stay within max_frames) over
+        [t_start, t_end], with the events between them; with config.refractory_bound, the
+        crowded events (by the optics' refractory period) counted again in ``crowded``; with a
+        config.noise_filter_ms, only the events a neighbour's supports within that time
+        (evcap.event_filters)."""
+        interval_us, max_frames = round(config.frame_interval_ms * 1000), config.max_frames
+        noise_filter_us = config.noise_filter_ms * 1000
+        refractory_us = optics.refractory_us if config.refractory_bound else 0.0
         if t_end <= t_start:
             raise InputError(f"{session.path}: no time span with both events and poses")
         span = t_end - t_start
@@ -88,19 +136,19 @@ class EventWindows:
                 "around the scene for a few seconds)"
             )
         parts, crowded_parts = [], []
-        last = np.full(w * h, np.iinfo(np.int64).min // 2, np.int64)  # each pixel's last event
-        seen = last.reshape(h, w).copy()  # the same, for the noise filter
+        filters = [BackgroundActivityFilter(noise_filter_us)] if noise_filter_us > 0 else []
+        keep = Compose(*filters).stream()
+        crowded = None
+        if refractory_us > 0:
+            crowded = RefractoryMarking(refractory_us, CROWDED_PERIODS).stream()
         for ev in _blocks(session, i0, i1):
-            if noise_filter_us > 0:
-                ev = ev.select(supported(ev.x, ev.y, ev.t, seen, noise_filter_us))
+            ev = keep(ev)
             pixels = ev.y.astype(np.int64) * w + ev.x
             keys = (pixels * 2 + (ev.p > 0)) * len(times)
             keys += np.searchsorted(times, ev.t, side="right") - 1
             parts.append(np.unique(keys, return_counts=True))
-            if refractory_us > 0:
-                within = CROWDED_PERIODS * float(refractory_us)
-                near = _crowded(ev.t.astype(np.int64), pixels, last, within)
-                crowded_parts.append(np.unique(keys[near], return_counts=True))
+            if crowded is not None:
+                crowded_parts.append(np.unique(keys[crowded(ev)], return_counts=True))
 
         def table(parts):
             keys, counts = _merge(parts)
@@ -256,18 +304,6 @@ def _before_rows(keys, before, rows, frames, n_frames, out):
                 else:
                     hi = mid
             out[k, code] = before[lo]
-
-
-@numba.njit(cache=True)
-def _crowded(t, pixels, last, within):
-    """Whether each event (in time order) comes within ``within`` us of its pixel's previous
-    one; ``last`` [P] (each pixel's last event time) is read and updated."""
-    out = np.empty(len(t), np.bool_)
-    for k in range(len(t)):
-        p = pixels[k]
-        out[k] = t[k] - last[p] <= within
-        last[p] = t[k]
-    return out
 
 
 def _merge(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:

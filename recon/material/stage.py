@@ -23,7 +23,9 @@ import torch.nn.functional as F
 
 from evcap.edge_maps import edge_map
 from evcap.recon._threads import torch_on_one_thread
-from evcap.recon.config import Ablation, Backend, EffectMode, MaterialConfig, RadianceConfig
+from evcap.recon.config import Ablation, Backend, EffectMode
+from evcap.recon.events.loss import event_loss
+from evcap.recon.material.config import MaterialConfig
 from evcap.recon.material.shading import (
     DIFFUSE_DIRECTIONS,
     MIN_ROUGHNESS,
@@ -33,14 +35,10 @@ from evcap.recon.material.shading import (
     shade,
 )
 from evcap.recon.material.visibility import Bounce, bake_occlusion
+from evcap.recon.radiance.config import RadianceConfig
 from evcap.recon.radiance.losses import anchor_loss, checked_loss
-from evcap.recon.radiance.stage import (
-    CHECK_EVERY,
-    RadianceField,
-    TrainingData,
-    draw_frames,
-    windows_event_loss,
-)
+from evcap.recon.radiance.stage import CHECK_EVERY, RadianceField, TrainingData
+from evcap.recon.radiance.terms import Term, total_loss
 from evcap.recon.raster.rasterize import Camera, Render, gaussian_normals, rasterize
 from evcap.recon.resume import Steps, digest, random_states, restore_random_states
 from evcap.recon.scene.cube_map import cube_directions, cube_lookup, mip_chain
@@ -428,12 +426,12 @@ def start_stage_two(
     Gaussians and trajectory. torch on one thread throughout (recon/_threads.py)."""
     with torch_on_one_thread():
         field = new_material_field(radiance, data, config)
-        frames = edge_frames(data, config.edge_frames)
-        edges = edge_maps(session, data, frames, config.edge_slice_ms, device)
+        frames = edge_frames(data, config.edges.frames)
+        edges = edge_maps(session, data, frames, config.edges.slice_ms, device)
         with torch.no_grad():
             views = data.viewmats()
             targets = [radiance.render_view(views[f], data.grid).color for f in frames]
-        tv_weights = [torch.exp(-config.edge_beta * edges[int(f)]) for f in frames]
+        tv_weights = [torch.exp(-config.loss.edge_beta * edges[int(f)]) for f in frames]
     return field, {
         "frames": torch.from_numpy(frames),
         "tv_weights": torch.stack(tv_weights),
@@ -499,19 +497,20 @@ def train_material(
     weights = {int(f): w.to(device) for f, w in zip(frames_all, start["tv_weights"], strict=True)}
     targets = {int(f): x.to(device) for f, x in zip(frames_all, start["targets"], strict=True)}
     groups = [
-        {"params": [field.base_logits], "lr": config.lr_base_color},
-        {"params": [field.roughness_logits], "lr": config.lr_roughness},
-        {"params": [field.normals], "lr": config.lr_normals},
-        {"params": [field.light.faces], "lr": config.lr_light},
+        {"params": [field.base_logits], "lr": config.lr.base_color},
+        {"params": [field.roughness_logits], "lr": config.lr.roughness},
+        {"params": [field.normals], "lr": config.lr.normals},
+        {"params": [field.light.faces], "lr": config.lr.light},
     ]
     if field.indirect_sh is not None:
-        groups.append({"params": [field.indirect_sh], "lr": config.lr_indirect})
+        groups.append({"params": [field.indirect_sh], "lr": config.lr.indirect})
     optimizer = torch.optim.Adam(groups, eps=1e-15)
     stride = max(len(data.windows) / len(frames_all), 1.0)
     # windows as long as stage I's, counted in stage II's coarser frames
     spacing = dataclasses.replace(
-        stage1, max_window_frames=max(1, int(stage1.max_window_frames / stride))
+        stage1.windows, max_window_frames=max(1, int(stage1.windows.max_window_frames / stride))
     )
+    terms = stage_two_terms(stage1, config, ablate)
     log: list[MaterialLog] = []
     loss = math.nan  # as last checked
     steps = Steps(config.iterations, save_state, save_every_s, clock, resume)
@@ -538,11 +537,15 @@ def train_material(
     with steps.running(state):
         while steps.next():
             step = steps.step
-            pick = draw_frames(rng, len(frames_all), spacing)
+            pick = spacing.draw(rng, len(frames_all))
             frames = frames_all[pick]
-            total, terms = _losses(
-                field, data, stage1, config, frames, targets, weights, ablate, timer
-            )
+            with timer("render"):
+                views = data.viewmats()
+                renders = [field.render_view(views[int(f)], data.grid) for f in frames]
+            with timer("loss"):
+                seen = [data.grid.sample(r.color[..., :3]) for r in renders]
+                inputs = StepInputs(data, frames, renders, seen, targets, weights, timer)
+                total = total_loss(terms, inputs, step, background_alone=False)
             with timer("backward"):
                 total.backward()
             with timer("optimizer"):
@@ -552,8 +555,8 @@ def train_material(
                     field.normals.data = F.normalize(field.normals.data, dim=1)
             if step % CHECK_EVERY == 0 or step == config.iterations:
                 loss = checked_loss("stage II", step, total, field.parameters())
-                terms = {k: float(v) for k, v in terms.items()}
-                log.append(MaterialLog(step, loss, **terms, seconds=steps.seconds()))
+                shown = {k: float(inputs.logged.get(k, 0.0)) for k in LOGGED}
+                log.append(MaterialLog(step, loss, **shown, seconds=steps.seconds()))
             steps.end()
             if progress:
                 shown = f"material loss {loss:.4f}" if math.isfinite(loss) else "material"
@@ -561,48 +564,66 @@ def train_material(
     return MaterialFit(field, log, steps.interrupted, steps.step)
 
 
-def _losses(
-    field: MaterialField,
-    data: TrainingData,
-    stage1: RadianceConfig,
-    config: MaterialConfig,
-    frames: np.ndarray,
-    distill_targets: dict[int, torch.Tensor],
-    edge_weights: dict[int, torch.Tensor],
-    ablate: frozenset[Ablation],
-    timer: StepTimer = UNTIMED,
-) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """The loss of the renders at ``frames``, L = L_event + 1.0 L_rad + 0.1 L_GW + 0.05 L_TV
-    without the terms ``ablate`` leaves out; (the total, its terms as tensors, to be read when
-    logged). ``distill_targets``: stage I's render of each frame; ``edge_weights``:
-    exp(-beta M_edge) of each frame."""
-    with timer("render"):
-        renders = [field.render_view(data.viewmats()[int(f)], data.grid) for f in frames]
-    with timer("loss"):
-        seen = [data.grid.sample(r.color[..., :3]) for r in renders]
-        ev = windows_event_loss(data, stage1, frames, seen, timer)
-        total = ev
-        zero = torch.zeros(())
-        terms = {"event": ev.detach(), "distill": zero, "anchor": zero, "tv": zero}
-        if "distill" not in ablate:
-            dl = 0
-            for f, r in zip(frames, renders, strict=True):
-                dl = dl + (r.color[..., :3] - distill_targets[int(f)]).abs().mean()
-            dl = dl / len(renders)
-            total = total + config.distill_weight * dl
-            terms["distill"] = dl.detach()
-        if "anchor" not in ablate and stage1.known_background is None:
-            an = anchor_loss(torch.cat(seen), stage1.anchor_level)
-            total = total + config.anchor_weight * an
-            terms["anchor"] = an.detach()
-        if "tv" not in ablate:
-            tv = sum(
-                edge_tv(r.color, edge_weights[int(f)], config.tv_normal_weight)
-                for f, r in zip(frames, renders, strict=True)
-            ) / len(renders)
-            total = total + config.tv_weight * tv
-            terms["tv"] = tv.detach()
-    return total, terms
+LOGGED = ("event", "distill", "anchor", "tv")  # the terms a step's log shows
+
+
+@dataclass
+class StepInputs:
+    """What stage II's terms read of a step: its renders at ``frames`` (their colors at the
+    sensor's pixels in ``seen``), stage I's render of each frame (``targets``), exp(-beta
+    M_edge) of each (``tv_weights``), and ``logged``, where the terms put what the log shows."""
+
+    data: TrainingData
+    frames: np.ndarray
+    renders: list[Render]
+    seen: list[torch.Tensor]
+    targets: dict[int, torch.Tensor]
+    tv_weights: dict[int, torch.Tensor]
+    timer: StepTimer = UNTIMED
+    logged: dict[str, torch.Tensor] = dataclasses.field(default_factory=dict)
+
+
+def stage_two_terms(
+    stage1: RadianceConfig, config: MaterialConfig, ablate: frozenset[Ablation]
+) -> list[Term]:
+    """L = L_event + 1.0 L_rad + 0.1 L_GW + 0.05 L_TV, in that order, without the terms
+    ``ablate`` leaves out (and the anchor where the background is known)."""
+    weights = config.loss
+
+    def logged(name: str, value: Callable[[StepInputs], torch.Tensor]):
+        def term(x: StepInputs) -> torch.Tensor:
+            out = value(x)
+            x.logged[name] = out.detach()
+            return out
+
+        return term
+
+    def event(x: StepInputs) -> torch.Tensor:
+        return event_loss(x.seen, x.frames, x.data, stage1.event_loss, x.timer)
+
+    def distill(x: StepInputs) -> torch.Tensor:
+        dl = 0
+        for f, r in zip(x.frames, x.renders, strict=True):
+            dl = dl + (r.color[..., :3] - x.targets[int(f)]).abs().mean()
+        return dl / len(x.renders)
+
+    def anchor(x: StepInputs) -> torch.Tensor:
+        return anchor_loss(torch.cat(x.seen), stage1.loss.anchor.level)
+
+    def tv(x: StepInputs) -> torch.Tensor:
+        return sum(
+            edge_tv(r.color, x.tv_weights[int(f)], weights.tv_normals)
+            for f, r in zip(x.frames, x.renders, strict=True)
+        ) / len(x.renders)
+
+    terms = [Term("event", 1.0, 0, logged("event", event))]
+    if "distill" not in ablate:
+        terms.append(Term("distill", weights.distill, 0, logged("distill", distill)))
+    if "anchor" not in ablate and stage1.background.known is None:
+        terms.append(Term("anchor", weights.anchor, 0, logged("anchor", anchor)))
+    if "tv" not in ablate:
+        terms.append(Term("tv", weights.tv, 0, logged("tv", tv)))
+    return terms
 
 
 def edge_tv(maps: torch.Tensor, weight: torch.Tensor, normal_weight: float) -> torch.Tensor:

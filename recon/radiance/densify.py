@@ -1,66 +1,157 @@
-"""3DGS's adaptive density control: clone small Gaussians and split large ones where the
-screen-space positional gradient is high, prune transparent or huge ones, reset opacities.
-Every change keeps the optimiser's moments in step with the parameters."""
+"""Densification as a strategy, in gsplat's shape: a strategy holds its settings in steps, the
+trainer holds its state (a dict it never looks inside, saved with the training's) and calls its
+hooks around backward; ``Strategy`` is the base another strategy swaps in for.
+
+``DefaultStrategy`` is 3DGS's adaptive density control: clone small Gaussians and split large
+ones where the screen-space positional gradient is high, prune transparent or huge ones, reset
+opacities. Every change keeps the optimiser's moments in step with the parameters."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 
-from evcap.recon.config import RadianceConfig
+from evcap.errors import InputError
 from evcap.recon.raster.rasterize import Render, quat_to_rotmat
 from evcap.recon.scene.gaussians import PARAMS, Gaussians
+from evcap.recon.scene.optics import RenderGrid
 from evcap.recon.scene.volume import SceneVolume
 
 
-class Densifier:
-    def __init__(
-        self, config: RadianceConfig, extent: float, volume: SceneVolume | None = None
+@dataclass(frozen=True)
+class DensifyConfig:
+    """3DGS's adaptive density control, as a stage's settings (fractions of the run, made
+    steps where the stage starts: DefaultStrategy.for_run)."""
+
+    start: float = 0.05
+    """The fraction of the run after which it densifies."""
+    stop: float = 0.6
+    """The fraction of the run until which it densifies (and resets opacities)."""
+    every: int = 100
+    """Steps between two densifications."""
+    grad_threshold: float = 2e-4
+    """The mean screen-space gradient (NDC units) that densifies a Gaussian."""
+    percent_dense: float = 0.01
+    """Clone a Gaussian below, split one above this fraction of the scene's extent."""
+    min_opacity: float = 0.005
+    """Gaussians less opaque are pruned."""
+    reset_every: int = 0
+    """Steps between two opacity resets; 0: never (resets upset the event loss on short
+    runs)."""
+    max_gaussians: int = 15_000
+    """It grows no further than this many Gaussians."""
+    confine: float = 0.0
+    """Gaussians that leave the ball the cameras converge on, grown by this factor, are pruned
+    at each densification (0: never)."""
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.start <= self.stop <= 1:
+            raise InputError(
+                "densify.start and densify.stop are fractions of the run, start <= stop"
+            )
+        if self.every < 1 or self.reset_every < 0 or self.max_gaussians < 1:
+            raise InputError("densify.every and max_gaussians must be at least 1, reset_every >= 0")
+
+
+class Strategy:
+    """A densification strategy: its hooks are called at every step, around backward, with
+    the state ``initialize_state`` made (the trainer saves it with the training and gives it
+    back on going on). This base changes nothing."""
+
+    def initialize_state(self) -> dict[str, torch.Tensor]:
+        return {}
+
+    def step_pre_backward(
+        self,
+        gaussians: Gaussians,
+        optimizer: torch.optim.Optimizer,
+        state: dict[str, torch.Tensor],
+        step: int,
+        renders: list[Render],
     ) -> None:
-        self.config = config
-        self.extent = extent
-        self.volume = volume
-        self.grad_sum = torch.zeros(0)
-        self.count = torch.zeros(0)
+        """Before backward (a strategy that needs the renders' gradients asks for them)."""
 
-    def _fit(self, n: int, device: torch.device) -> None:
-        if len(self.grad_sum) != n or self.grad_sum.device != device:
-            self.grad_sum = torch.zeros(n, device=device)
-            self.count = torch.zeros(n, device=device)
+    def step_post_backward(
+        self,
+        gaussians: Gaussians,
+        optimizer: torch.optim.Optimizer,
+        state: dict[str, torch.Tensor],
+        step: int,
+        renders: list[Render],
+        grid: RenderGrid,
+    ) -> None:
+        """After backward and the optimiser's step ``step`` (1-based)."""
+
+
+@dataclass(frozen=True)
+class DefaultStrategy(Strategy):
+    """3DGS's adaptive density control, its schedule in steps."""
+
+    start: int  # densifies after this step
+    stop: int  # and up to this one
+    every: int
+    reset_every: int
+    grad_threshold: float
+    split_size: float  # scene units: clone below, split above
+    min_opacity: float
+    max_gaussians: int
+    extent: float  # none larger than the scene survives
+    confine_radius: float = 0.0  # scene units about ``center``; 0: not confined
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    @classmethod
+    def for_run(
+        cls, config: DensifyConfig, iterations: int, extent: float, volume: SceneVolume | None
+    ) -> DefaultStrategy:
+        """The strategy of a run of ``iterations`` steps in a scene of ``extent``."""
+        confine = config.confine > 0 and volume is not None and volume.converging
+        return cls(
+            start=math.floor(config.start * iterations),
+            stop=math.floor(config.stop * iterations),
+            every=config.every,
+            reset_every=config.reset_every,
+            grad_threshold=config.grad_threshold,
+            split_size=config.percent_dense * extent,
+            min_opacity=config.min_opacity,
+            max_gaussians=config.max_gaussians,
+            extent=extent,
+            confine_radius=config.confine * volume.radius if confine else 0.0,
+            center=tuple(float(c) for c in volume.center) if confine else (0.0, 0.0, 0.0),
+        )
+
+    def initialize_state(self) -> dict[str, torch.Tensor]:
+        """Each Gaussian's summed screen-space gradient and the views it was seen in."""
+        return {"grad_sum": torch.zeros(0), "count": torch.zeros(0)}
+
+    def step_post_backward(
+        self,
+        gaussians: Gaussians,
+        optimizer: torch.optim.Optimizer,
+        state: dict[str, torch.Tensor],
+        step: int,
+        renders: list[Render],
+        grid: RenderGrid,
+    ) -> None:
+        for r in renders:
+            _observe(state, r, grid.width, grid.height)
+        if self.start < step <= self.stop and step % self.every == 0:
+            self.densify(gaussians, optimizer, state)
+        if self.reset_every and step % self.reset_every == 0 and step <= self.stop:
+            reset_opacities(gaussians, optimizer)
 
     @torch.no_grad()
-    def observe(self, render: Render, width: int, height: int) -> None:
-        """Accumulate a render's screen-space gradients (after backward), in NDC units as 3DGS."""
-        g = render.means2d.grad
-        if g is None:
-            return
-        g = g.reshape(-1, 2).detach()
-        # the two scales as numbers: a tensor of them copied to a GPU would wait for it
-        g = torch.stack([g[:, 0] * (width / 2), g[:, 1] * (height / 2)], 1)
-        self._fit(len(g), g.device)
-        seen = render.visible.to(g.dtype)  # as weights, not an index: no wait for the device
-        self.grad_sum += g.norm(dim=1) * seen
-        self.count += seen
-
-    def due(self, step: int) -> tuple[bool, bool]:
-        """(densify now, reset opacities now) after optimisation step ``step`` (1-based)."""
-        c = self.config
-        start, stop = c.densify_from * c.iterations, c.densify_until * c.iterations
-        densify = start < step <= stop and step % c.densify_every == 0
-        reset = bool(c.opacity_reset_every) and step % c.opacity_reset_every == 0 and step <= stop
-        return densify, reset
-
-    @torch.no_grad()
-    def densify(self, model: Gaussians, optimizer: torch.optim.Optimizer) -> dict[str, int]:
-        c = self.config
+    def densify(
+        self, model: Gaussians, optimizer: torch.optim.Optimizer, state: dict[str, torch.Tensor]
+    ) -> dict[str, int]:
         n = len(model)
         device = model.means.device
-        self._fit(n, device)
-        grad = self.grad_sum / self.count.clamp(min=1)
-        hot = grad >= c.grad_threshold
-        big = model.scales.max(1).values > c.percent_dense * self.extent
-        room = max(c.max_gaussians - n, 0)
+        _fit(state, n, device)
+        grad = state["grad_sum"] / state["count"].clamp(min=1)
+        hot = grad >= self.grad_threshold
+        big = model.scales.max(1).values > self.split_size
+        room = max(self.max_gaussians - n, 0)
         clone = torch.nonzero(hot & ~big).squeeze(1)
         split = torch.nonzero(hot & big).squeeze(1)
         # when near the cap, the strongest gradients go first
@@ -81,23 +172,44 @@ class Densifier:
         _append(model, optimizer, new)
         keep = torch.ones(len(model), dtype=torch.bool, device=device)
         keep[split] = False
-        keep &= model.opacities >= c.min_opacity
+        keep &= model.opacities >= self.min_opacity
         keep &= model.scales.max(1).values <= self.extent  # none larger than the scene
         keep &= torch.isfinite(model.means).all(1)
-        v = self.volume
-        if c.confine > 0 and v is not None and v.converging:
-            center = torch.as_tensor(v.center, dtype=model.means.dtype, device=model.means.device)
-            keep &= (model.means.detach() - center).norm(dim=1) <= c.confine * v.radius
+        if self.confine_radius > 0:
+            center = torch.as_tensor(self.center, dtype=model.means.dtype, device=device)
+            keep &= (model.means.detach() - center).norm(dim=1) <= self.confine_radius
         pruned = int((~keep).sum()) - len(split)
         _select(model, optimizer, keep)
-        self.grad_sum = torch.zeros(len(model), device=device)
-        self.count = torch.zeros(len(model), device=device)
+        state["grad_sum"] = torch.zeros(len(model), device=device)
+        state["count"] = torch.zeros(len(model), device=device)
         return {"cloned": len(clone), "split": len(split), "pruned": pruned}
 
-    @torch.no_grad()
-    def reset_opacities(self, model: Gaussians, optimizer: torch.optim.Optimizer) -> None:
-        low = torch.logit(torch.clamp(model.opacities, max=0.01))
-        _replace(model, optimizer, {"opacity_logits": low})
+
+def _fit(state: dict[str, torch.Tensor], n: int, device: torch.device) -> None:
+    if len(state["grad_sum"]) != n or state["grad_sum"].device != device:
+        state["grad_sum"] = torch.zeros(n, device=device)
+        state["count"] = torch.zeros(n, device=device)
+
+
+@torch.no_grad()
+def _observe(state: dict[str, torch.Tensor], render: Render, width: int, height: int) -> None:
+    """Accumulate a render's screen-space gradients (after backward), in NDC units as 3DGS."""
+    g = render.means2d.grad
+    if g is None:
+        return
+    g = g.reshape(-1, 2).detach()
+    # the two scales as numbers: a tensor of them copied to a GPU would wait for it
+    g = torch.stack([g[:, 0] * (width / 2), g[:, 1] * (height / 2)], 1)
+    _fit(state, len(g), g.device)
+    seen = render.visible.to(g.dtype)  # as weights, not an index: no wait for the device
+    state["grad_sum"] += g.norm(dim=1) * seen
+    state["count"] += seen
+
+
+@torch.no_grad()
+def reset_opacities(model: Gaussians, optimizer: torch.optim.Optimizer) -> None:
+    low = torch.logit(torch.clamp(model.opacities, max=0.01))
+    _replace(model, optimizer, {"opacity_logits": low})
 
 
 def _group(optimizer: torch.optim.Optimizer, name: str) -> dict:

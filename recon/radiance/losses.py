@@ -1,16 +1,15 @@
-"""The losses of stage I (method.md): events, brightness anchor, normal consistency."""
+"""The terms of stage I's loss beside the event loss (recon/events/loss.py): the brightness
+anchor, normal consistency and the surface terms (method.md; terms.py weights them)."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from typing import assert_never
 
 import torch
 import torch.nn.functional as F
 
 from evcap.errors import NumericalError
-from evcap.recon.config import ZeroEvents
 
 
 def checked_loss(
@@ -30,61 +29,6 @@ def checked_loss(
             "diverged; lower its learning rates"
         )
     return float(total.detach()) if total is not None else math.nan
-
-
-def log_radiance(radiance: torch.Tensor, eps: float) -> torch.Tensor:
-    """log(L + eps): finite for black (and for the tiny negatives of interpolation)."""
-    return torch.log(radiance.clamp(min=0) + eps)
-
-
-def event_loss(
-    predicted: torch.Tensor,
-    measured: torch.Tensor,
-    counts: torch.Tensor,
-    threshold_on: torch.Tensor,
-    threshold_off: torch.Tensor,
-    mask: torch.Tensor,
-    zero_events: ZeroEvents = "target",
-    silent_weight: float | None = None,
-    crowded: torch.Tensor | None = None,
-) -> torch.Tensor:
-    """Mean L1 between the rendered log change and C_on ON - C_off OFF, over ``mask``.
-
-    Most pixels of a window have no event; left to a plain mean they teach only "nothing
-    changes", whose cheapest answer is an empty scene. With ``silent_weight`` s, the pixels
-    with events and those without are averaged apart and weighted 1 - s and s (EventNeRF
-    draws 90 % of its rays from pixels with events: s = 0.1).
-
-    With ``zero_events="bound"``, a pixel without events is not told "no change" but only
-    -C_off < change < C_on (a hinge): what a silent pixel really says.
-
-    A pixel with ``crowded`` events (counts; event_windows.py) lost part of its change to
-    its refractory period: its measured change is only a lower bound on the change's size,
-    in its direction (a hinge again).
-    """
-    err = (predicted - measured).abs()
-    if crowded is not None:
-        short = torch.where(
-            measured > 0, F.relu(measured - predicted), F.relu(predicted - measured)
-        )
-        err = torch.where((crowded > 0) & (measured != 0), short, err)
-    match zero_events:
-        case "target":
-            pass
-        case "bound":
-            silent = counts == 0
-            inside = F.relu(predicted - threshold_on) + F.relu(-predicted - threshold_off)
-            err = torch.where(silent, inside, err)
-        case _:
-            assert_never(zero_events)
-    m = mask.to(err.dtype)
-    if silent_weight is None:
-        return (err * m).sum() / m.sum().clamp(min=1)
-    loud = m * (counts > 0).to(err.dtype)
-    quiet = m - loud
-    return (1 - silent_weight) * (err * loud).sum() / loud.sum().clamp(min=1) + silent_weight * (
-        err * quiet
-    ).sum() / quiet.sum().clamp(min=1)
 
 
 def quiet_variation_loss(log_image: torch.Tensor, loud: torch.Tensor) -> torch.Tensor:

@@ -12,10 +12,54 @@ so the event loss's gradient reaches the corrections through the corrected poses
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import assert_never
+
 import numpy as np
 import torch
 
+from evcap.errors import InputError
+from evcap.recon.config import REFINE_POSES, RefinePoses
 from evcap.records import Poses
+
+# sources of poses `auto` refines: those evcap estimated
+ESTIMATED = ("evcap poses", "evcap reconstruct")
+
+
+@dataclass(frozen=True)
+class PoseRefinementConfig:
+    """The trajectory refined by the event loss: a correction per keyframe."""
+
+    refine: RefinePoses = "auto"
+    """"on", "off", or "auto": when evcap estimated the poses (`evcap poses`)."""
+    keyframe_ms: float = 100.0
+    """One keyframe every this many ms along the recording."""
+    start: float = 0.3
+    """The fraction of the run after which the corrections are learnt."""
+    lr_rotation: float = 1e-4
+    """Adam's rate of the rotations (radians); it decays tenfold by the end of the run."""
+    lr_shift: float = 1e-4
+    """Adam's rate of the shifts (fractions of the scene's extent); it decays tenfold."""
+    smooth_weight: float = 1.0
+    """The weight of the corrections' second differences along the keyframes."""
+
+    def __post_init__(self) -> None:
+        if self.refine not in REFINE_POSES:
+            raise InputError(f"poses.refine must be one of {', '.join(REFINE_POSES)}")
+        if not 0 <= self.start < 1 or self.keyframe_ms <= 0:
+            raise InputError("poses.start is a fraction of the run, in [0, 1); keyframe_ms > 0")
+
+    def refines(self, track: Poses) -> bool:
+        """Whether the corrections are learnt for this trajectory."""
+        match self.refine:
+            case "on":
+                return True
+            case "off":
+                return False
+            case "auto":
+                return track.source.startswith(ESTIMATED)
+            case _:
+                assert_never(self.refine)
 
 
 def exp_so3(w: torch.Tensor) -> torch.Tensor:

@@ -4,7 +4,8 @@ Each step draws a window between two frame times, renders the two views (poses i
 reads them at the sensor's pixels, and compares the change of log radiance of each pixel's
 channel with its events: L = L_event + 0.1 L_GW + 0.05 L_normal, and (ours, in `fast`)
 10 L_spread, the spread of the depths along each ray, and 0.3 L_smooth, neighbouring normals
-alike on one surface, after a tenth of the run that fits the background alone.
+alike on one surface, after a tenth of the run that fits the background alone (terms.py).
+The densification is a strategy (densify.py) whose state the trainer holds.
 """
 
 from __future__ import annotations
@@ -21,19 +22,13 @@ import torch.nn.functional as F
 
 from evcap.errors import InputError
 from evcap.recon._threads import torch_on_one_thread
-from evcap.recon.config import Backend, RadianceConfig
+from evcap.recon.config import Backend
 from evcap.recon.events.windows import EventWindows
-from evcap.recon.radiance.densify import Densifier
-from evcap.recon.radiance.losses import (
-    anchor_loss,
-    checked_loss,
-    depth_curvature_loss,
-    event_loss,
-    log_radiance,
-    quiet_variation_loss,
-    surface_terms,
-)
-from evcap.recon.radiance.pose_refinement import PoseCorrections
+from evcap.recon.radiance.config import RadianceConfig
+from evcap.recon.radiance.densify import DefaultStrategy, Strategy
+from evcap.recon.radiance.losses import checked_loss
+from evcap.recon.radiance.pose_refinement import PoseCorrections, PoseRefinementConfig
+from evcap.recon.radiance.terms import StepInputs, after, stage_one_terms, total_loss
 from evcap.recon.raster.rasterize import Camera, Render, rasterize
 from evcap.recon.resume import Steps, random_states, restore_random_states
 from evcap.recon.scene.gaussians import Background, Gaussians, make_optimizer, means_lr
@@ -102,7 +97,7 @@ def _training_data(
     """The events' windows and the sensor's optics; with ``geometry``, the render grids and
     the scene's volume too (else left None, for the caller to give)."""
     optics = SensorOptics.from_session(session)
-    if config.refractory_bound and optics.refractory_us <= 0:
+    if config.windows.refractory_bound and optics.refractory_us <= 0:
         raise InputError(
             f"{session.path}: the refractory bound needs the sensor's refractory period, and "
             "the calibration has none: measure it with `evcap calibrate`, or leave "
@@ -114,17 +109,7 @@ def _training_data(
         raise InputError(f"{session.path} has no events to reconstruct from")
     # the recording starts at 0, whenever its first event came
     start, end = max(track.start, 0), min(track.end, span[1])
-    windows = EventWindows.from_session(
-        session,
-        optics,
-        start,
-        end,
-        round(config.frame_interval_ms * 1000),
-        config.max_frames,
-        device,
-        optics.refractory_us if config.refractory_bound else 0.0,
-        config.noise_filter_ms * 1000,
-    )
+    windows = EventWindows.from_session(session, optics, start, end, config.windows, device)
     weights = CHANNEL_WEIGHTS[torch.from_numpy(optics.channels().astype(np.int64))]
     mask = torch.from_numpy(~optics.hot_pixels.ravel())
     volume, grid, coarse = None, None, None
@@ -132,8 +117,8 @@ def _training_data(
         poses = track.at(windows.frame_times)
         volume = scene_volume(poses, optics.K, optics.width, optics.height)
         grid = render_grid(optics, config.resolution, device)
-        if config.coarse_until:
-            coarse = render_grid(optics, config.coarse_resolution, device)
+        if config.coarse.until:
+            coarse = render_grid(optics, config.coarse.resolution, device)
     return TrainingData(
         optics, track, windows, grid, coarse, weights.to(device), mask.to(device), volume
     )
@@ -153,7 +138,7 @@ class RadianceField(torch.nn.Module):
         self.gaussians = gaussians
         self.background = background
         self.backend = backend
-        # a known background (config.known_background): seen in place of the learnt one
+        # a known background (config.background.known): seen in place of the learnt one
         known = None if backdrop is None else torch.tensor(backdrop, dtype=torch.float32)
         self.register_buffer("backdrop", known)
 
@@ -211,12 +196,6 @@ class RadianceField(torch.nn.Module):
         )
 
 
-def background_alone(config: RadianceConfig, step: int) -> bool:
-    """Whether this step fits the background alone (config.background_first); never where the
-    background is known."""
-    return config.known_background is None and step <= config.background_first * config.iterations
-
-
 CHECK_EVERY = 10  # steps: the log's and the NaN check's (each check waits for the device)
 
 
@@ -241,6 +220,30 @@ class Fit:
     corrections: PoseCorrections | None = None  # the trajectory's, when it was refined
 
 
+@dataclass(frozen=True)
+class Schedule:
+    """Stage I's fractions of the run as steps, made once where it starts: each part runs at
+    the steps after its ``*_after`` or up to its ``*_until``."""
+
+    iterations: int
+    background_until: int  # the background fitted alone (config.background.first)
+    coarse_until: int  # rendered on the coarse grid
+    poses_after: float  # the trajectory refined; a step, as the rates' decay reads it
+    degree_every: int  # the view dependence's degree grows by one every this many steps
+
+    @classmethod
+    def of(cls, config: RadianceConfig) -> Schedule:
+        n = config.iterations
+        alone = after(config.background.first, n) if config.background.known is None else 0
+        return cls(
+            n,
+            alone,
+            after(config.coarse.until, n),
+            config.poses.start * n,
+            max(n // 30, 1),
+        )
+
+
 def new_field(
     data: TrainingData, config: RadianceConfig, seed: int, device: str, backend: Backend
 ) -> RadianceField:
@@ -255,24 +258,25 @@ def _new_field(
     rng = np.random.default_rng(seed)
     poses = data.track.at(data.windows.frame_times)
     o = data.optics
+    init = config.init
     points = np.zeros((0, 3))
-    if config.init_on_points > 0 and data.track.points_xyz is not None:
-        n = min(round(config.init_on_points * config.init_gaussians), config.init_gaussians)
+    if init.on_points > 0 and data.track.points_xyz is not None:
+        n = min(round(init.on_points * init.gaussians), init.gaussians)
         points = on_points(data.track.points_xyz, data.volume, n, rng)
-    rest = config.init_gaussians - len(points)
+    rest = init.gaussians - len(points)
     if rest > 0:
         randoms = sample_points(data.volume, poses, o.K, o.width, o.height, rest, rng)
         points = np.concatenate([points, randoms])
     g = torch.Generator().manual_seed(seed)
-    # no larger than init_size_px render pixels at the volume's distance: random points fill
+    # no larger than init.size_px render pixels at the volume's distance: random points fill
     # the whole view, and large ones would overlap by hundreds at every pixel
     distance = np.median(np.linalg.norm(poses[:, :3, 3] - data.volume.center, axis=1))
     if not data.volume.converging:
         distance = np.sqrt(data.volume.near * data.volume.far)
     footprint = distance / float(data.grid.K[0, 0])
-    gaussians = Gaussians.random(points, config.sh_degree, g, config.init_size_px * footprint)
-    background = Background(config.background_size)
-    return RadianceField(gaussians, background, backend, config.known_background).to(device)
+    gaussians = Gaussians.random(points, config.sh_degree, g, init.size_px * footprint)
+    background = Background(config.background.size)
+    return RadianceField(gaussians, background, backend, config.background.known).to(device)
 
 
 def on_points(
@@ -300,6 +304,7 @@ def train_radiance(
     save_state: Callable[[dict], None] | None = None,
     save_every_s: float = 120.0,
     timer: StepTimer = UNTIMED,
+    strategy: Strategy | None = None,
 ) -> Fit:
     """Fit stage I; Ctrl-C ends it at the end of the step with what was learnt so far.
     ``evaluate``, when given, is called at ``evaluations`` evenly spaced steps (its time not
@@ -309,7 +314,8 @@ def train_radiance(
     goes on from its step as if it had never stopped (``data`` loaded with the state's
     ``data``: load_training_data's ``derived``). The loss and the parameters are checked
     for NaN every CHECK_EVERY steps (each check makes a GPU wait for the host); ``timer``
-    measures the parts of each step (bench/steps.py)."""
+    measures the parts of each step (bench/steps.py). ``strategy``: the densification
+    (default: 3DGS's, as config.densify sets it)."""
     torch.manual_seed(seed)
     if resume is None:
         field = new_field(data, config, seed, device, backend)
@@ -318,26 +324,30 @@ def train_radiance(
         derived = resume["data"]
         gaussians = Gaussians.from_state(resume["gaussians"])
         background = Background.from_faces(resume["background"])
-        field = RadianceField(gaussians, background, backend, config.known_background)
+        field = RadianceField(gaussians, background, backend, config.background.known)
         field = field.to(device)
+    schedule = Schedule.of(config)
     extent = data.volume.radius
-    optimizer = make_optimizer(field.gaussians, field.background, config, extent)
-    densifier = Densifier(config, extent, data.volume)
-    corrections, pose_optimizer = _pose_corrections(data, config, extent)
+    optimizer = make_optimizer(field.gaussians, field.background, config.lr, extent)
+    if strategy is None:
+        strategy = DefaultStrategy.for_run(config.densify, config.iterations, extent, data.volume)
+    strategy_state = strategy.initialize_state()
+    refines = config.poses.refines(data.track)
+    corrections, pose_optimizer = _pose_corrections(data, config.poses, extent, refines)
+    terms = stage_one_terms(config, refines)
     rng = np.random.default_rng(seed + 1)
     log: list[StepLog] = []
     history: list[dict] = []
     steps = Steps(config.iterations, save_state, save_every_s, clock, resume)
     if resume is not None:
         optimizer.load_state_dict(resume["optimizer"])
-        densifier.grad_sum, densifier.count = resume["grad_sum"], resume["count"]
+        strategy_state = dict(resume["densify"])
         restore_random_states(rng, resume["random"])
         log = [StepLog(**x) for x in resume["log"]]
         history = list(resume["history"])
         if corrections is not None:
             corrections.load_state_dict(resume["corrections"])
             pose_optimizer.load_state_dict(resume["pose_optimizer"])
-    degree_every = max(config.iterations // 30, 1)
     evaluate_at = set(np.linspace(0, config.iterations, evaluations + 1)[1:].round().astype(int))
     loss = math.nan  # as last checked
 
@@ -354,8 +364,7 @@ def train_radiance(
             "gaussians": field.gaussians.state_dict(),
             "background": field.background.faces.detach(),
             "optimizer": optimizer.state_dict(),
-            "grad_sum": densifier.grad_sum,
-            "count": densifier.count,
+            "densify": strategy_state,
             "random": random_states(rng),
             "log": [dataclasses.asdict(x) for x in log],
             "history": history,
@@ -365,50 +374,43 @@ def train_radiance(
     with steps.running(state):
         while steps.next():
             step = steps.step
-            sh_degree = min(config.sh_degree, (step - 1) // degree_every)
-            frames = draw_frames(rng, len(data.windows), config)
+            sh_degree = min(config.sh_degree, (step - 1) // schedule.degree_every)
+            frames = config.windows.draw(rng, len(data.windows))
             grid = data.grid
-            if data.coarse_grid is not None and step <= config.coarse_until * config.iterations:
+            if data.coarse_grid is not None and step <= schedule.coarse_until:
                 grid = data.coarse_grid
-            refining = corrections is not None and step > config.pose_from * config.iterations
-            renders, total, terms = _losses(
-                field,
-                data,
-                grid,
-                config,
-                frames,
-                sh_degree,
-                step,
-                corrections if refining else None,
-                timer,
-            )
+            refining = corrections is not None and step > schedule.poses_after
+            hidden = step <= schedule.background_until
+            with timer("render"):
+                spread = config.loss.spread.weight > 0
+                moved = corrections if refining else None
+                renders = _renders(field, data, grid, frames, sh_degree, spread, hidden, moved)
+            with timer("loss"):
+                seen = [grid.sample(r.color[..., :3]) for r in renders]  # [H * W, 3]
+                inputs = StepInputs(field, data, grid, frames, renders, seen, moved, step, timer)
+                total = total_loss(terms, inputs, step, hidden)
             with timer("backward"):
                 total.backward()
-            with timer("densification"):
-                for r in renders:
-                    densifier.observe(r, grid.width, grid.height)
             with timer("optimizer"):
                 for group in optimizer.param_groups:
                     if group["name"] == "means":
-                        group["lr"] = means_lr(config, extent, step)
+                        group["lr"] = means_lr(config.lr, extent, step, config.iterations)
                 optimizer.step()
                 optimizer.zero_grad(set_to_none=True)
                 if refining:
-                    _pose_step(pose_optimizer, corrections, config, step)
+                    _pose_step(pose_optimizer, corrections, config.poses, schedule, step)
                 with torch.no_grad():
                     q = field.gaussians.quats
                     q.data = F.normalize(q.data, dim=1)  # any length is a rotation; keep off zero
             with timer("densification"):
-                densify, reset = densifier.due(step)
-                if densify:
-                    densifier.densify(field.gaussians, optimizer)
-                if reset:
-                    densifier.reset_opacities(field.gaussians, optimizer)
+                strategy.step_post_backward(
+                    field.gaussians, optimizer, strategy_state, step, renders, grid
+                )
             n = len(field.gaussians)
             if step % CHECK_EVERY == 0 or step == config.iterations:
                 loss = checked_loss("stage I", step, total, field.parameters())
-                terms = {k: float(v) for k, v in terms.items()}
-                log.append(StepLog(step, loss, **terms, gaussians=n, seconds=steps.seconds()))
+                shown = {k: float(inputs.logged.get(k, 0.0)) for k in ("event", "anchor", "normal")}
+                log.append(StepLog(step, loss, **shown, gaussians=n, seconds=steps.seconds()))
             if evaluate is not None and step in evaluate_at:
                 seconds = steps.seconds()
                 with steps.paused_clock():
@@ -421,18 +423,18 @@ def train_radiance(
 
 
 def _pose_corrections(
-    data: TrainingData, config: RadianceConfig, extent: float
+    data: TrainingData, config: PoseRefinementConfig, extent: float, refines: bool
 ) -> tuple[PoseCorrections | None, torch.optim.Optimizer | None]:
-    """The trajectory's corrections and their optimiser, when the config refines poses."""
-    if not config.refine_poses:
+    """The trajectory's corrections and their optimiser, when the poses are refined."""
+    if not refines:
         return None, None
     times = data.windows.frame_times
-    every = round(config.pose_keyframe_ms * 1000)
+    every = round(config.keyframe_ms * 1000)
     corrections = PoseCorrections(data.track, int(times[0]), int(times[-1]), every, extent)
     optimizer = torch.optim.Adam(
         [
-            {"params": [corrections.rotation], "lr": config.lr_pose_rotation, "name": "rotation"},
-            {"params": [corrections.shift], "lr": config.lr_pose_shift, "name": "shift"},
+            {"params": [corrections.rotation], "lr": config.lr_rotation, "name": "rotation"},
+            {"params": [corrections.shift], "lr": config.lr_shift, "name": "shift"},
         ],
         eps=1e-15,
     )
@@ -442,217 +444,37 @@ def _pose_corrections(
 def _pose_step(
     optimizer: torch.optim.Optimizer,
     corrections: PoseCorrections,
-    config: RadianceConfig,
+    config: PoseRefinementConfig,
+    schedule: Schedule,
     step: int,
 ) -> None:
     """One step of the corrections, their rates decayed tenfold over the refinement."""
-    start = config.pose_from * config.iterations
-    progress = (step - start) / max(config.iterations - start, 1)
+    start = schedule.poses_after
+    progress = (step - start) / max(schedule.iterations - start, 1)
     for group in optimizer.param_groups:
-        base = config.lr_pose_rotation if group["name"] == "rotation" else config.lr_pose_shift
+        base = config.lr_rotation if group["name"] == "rotation" else config.lr_shift
         group["lr"] = base * 0.1**progress
     optimizer.step()
     optimizer.zero_grad(set_to_none=True)
     corrections.fix_gauge()
 
 
-def draw_frames(rng: np.random.Generator, frames: int, config: RadianceConfig) -> np.ndarray:
-    """views_per_step frame indices, increasing, each 1..max_window_frames after the last."""
-    gaps = rng.integers(1, config.max_window_frames + 1, config.views_per_step - 1)
-    span = int(gaps.sum())
-    if span >= frames:
-        gaps = np.maximum(gaps * (frames - 1) // span, 1)
-        span = int(gaps.sum())
-    start = int(rng.integers(0, max(frames - span, 1)))
-    return np.minimum(start + np.concatenate([[0], np.cumsum(gaps)]), frames - 1)
-
-
-def windows_event_loss(
-    data: TrainingData,
-    config: RadianceConfig,
-    frames: np.ndarray,
-    seen: list[torch.Tensor],
-    timer: StepTimer = UNTIMED,
-) -> torch.Tensor:
-    """The event loss of every window between two of the views ``seen`` [H * W, 3] (the
-    renders at the sensor's pixels) at ``frames``, averaged (on the CPU in one compiled pass,
-    recon/events/_loss_cpu.py)."""
-    w = data.windows
-    with timer("events"):
-        before = w.before_frames(frames)
-        crowded = w.crowded.before_frames(frames) if w.crowded is not None else None
-    pairs = [
-        (i, j)
-        for i in range(len(frames))
-        for j in range(i + 1, len(frames))
-        if frames[j] != frames[i]
-    ]
-    if not pairs:
-        return seen[0].sum() * 0
-    noise = expected_noise(data, config, frames, pairs)
-    if seen[0].device.type == "cpu":
-        from evcap.recon.events._loss_cpu import event_loss_cpu
-
-        return event_loss_cpu(
-            seen,
-            data.channel_weights,
-            config.log_eps,
-            before,
-            pairs,
-            noise,
-            w.threshold_on,
-            w.threshold_off,
-            data.mask,
-            config.zero_events,
-            config.silent_weight,
-            crowded,
-        )
-    return event_loss_torch(data, config, before, pairs, noise, seen, crowded)
-
-
-def expected_noise(
-    data: TrainingData, config: RadianceConfig, frames: np.ndarray, pairs: list[tuple[int, int]]
-) -> np.ndarray:
-    """[windows, 2] the noise events (ON, OFF) a pixel fires in each window at the
-    calibration's rates (config.noise_rates; else 0)."""
-    out = np.zeros((len(pairs), 2))
-    if config.noise_rates:
-        t = data.windows.frame_times[np.asarray(frames)]
-        seconds = np.array([(t[j] - t[i]) * 1e-6 for i, j in pairs])
-        out[:, 0] = data.optics.noise_on_hz * seconds
-        out[:, 1] = data.optics.noise_off_hz * seconds
-    return out
-
-
-def event_loss_torch(
-    data: TrainingData,
-    config: RadianceConfig,
-    before: torch.Tensor,
-    pairs: list[tuple[int, int]],
-    noise: np.ndarray,
-    seen: list[torch.Tensor],
-    crowded: torch.Tensor | None = None,
-) -> torch.Tensor:
-    """windows_event_loss in PyTorch operations: losses.event_loss window by window."""
-    w = data.windows
-    logs = [log_radiance((s * data.channel_weights).sum(1), config.log_eps) for s in seen]
-    event = []
-    for (i, j), (mu_on, mu_off) in zip(pairs, noise, strict=True):
-        target, counts = w.change(*w.between(before[i], before[j]))
-        target = target - (w.threshold_on * float(mu_on) - w.threshold_off * float(mu_off))
-        near = None
-        if crowded is not None:
-            near = sum(w.crowded.between(crowded[i], crowded[j]))
-        event.append(
-            event_loss(
-                logs[j] - logs[i],
-                target,
-                counts,
-                w.threshold_on,
-                w.threshold_off,
-                data.mask,
-                config.zero_events,
-                config.silent_weight,
-                near,
-            )
-        )
-    return torch.stack(event).mean()
-
-
-def _losses(
+def _renders(
     field: RadianceField,
     data: TrainingData,
     grid: RenderGrid,
-    config: RadianceConfig,
     frames: np.ndarray,
     sh_degree: int,
-    step: int,
-    corrections: PoseCorrections | None = None,
-    timer: StepTimer = UNTIMED,
-) -> tuple[list[Render], torch.Tensor, dict[str, torch.Tensor]]:
-    """The renders on ``grid`` at the frames (from the corrected poses when ``corrections``
-    are given), and the loss of every window between two of them; (renders, total, its terms
-    as tensors, to be read when logged)."""
-    spread = config.spread_weight > 0
-    hidden = background_alone(config, step)
-    with timer("render"):
-        if corrections is None:
-            views = [data.viewmats()[int(f)] for f in frames]
-            renders = [field.render_view(v, grid, sh_degree, spread, hidden) for v in views]
-        else:
-            times = data.windows.frame_times[frames]
-            poses = corrections.apply(data.track.at(times), times)
-            renders = [field.render(T, grid, sh_degree, spread, hidden) for T in poses]
-    with timer("loss"):
-        return _terms(field, data, grid, config, frames, step, renders, corrections, timer)
-
-
-def _terms(
-    field: RadianceField,
-    data: TrainingData,
-    grid: RenderGrid,
-    config: RadianceConfig,
-    frames: np.ndarray,
-    step: int,
-    renders: list[Render],
+    spread: bool,
+    hidden: bool,
     corrections: PoseCorrections | None,
-    timer: StepTimer,
-) -> tuple[list[Render], torch.Tensor, dict[str, torch.Tensor]]:
-    seen = [grid.sample(r.color[..., :3]) for r in renders]  # [H * W, 3], sensor pixels
-    ev = windows_event_loss(data, config, frames, seen, timer)
-    an = anchor_loss(torch.cat(seen), config.anchor_level)
-    total = ev if config.known_background is not None else ev + config.anchor_weight * an
-    if corrections is not None:
-        total = total + config.pose_smooth_weight * corrections.smoothness()
-    terms = {"event": ev.detach(), "anchor": an.detach(), "normal": torch.zeros(())}
-    hidden = background_alone(config, step)
-    if config.quiet_tv_weight > 0:
-        H, W = data.optics.height, data.optics.width
-        _, counts = data.windows.log_change(int(frames[0]), int(frames[-1]))
-        loud = ((counts > 0) | ~data.mask).reshape(H, W)
-        tv = sum(
-            quiet_variation_loss(log_radiance(s, config.log_eps).reshape(H, W, 3), loud)
-            for s in seen
-        )
-        total = total + config.quiet_tv_weight * tv / len(seen)
-    if config.background_tv_weight > 0:
-        total = total + config.background_tv_weight * field.background.log_variation()
-    if hidden:  # the background alone: the terms of the Gaussians wait for them
-        return renders, total, terms
-    which = (
-        config.normal_weight > 0 and step > config.normal_from * config.iterations,
-        config.spread_weight > 0,
-        config.smooth_weight > 0,
-    )
-    if any(which):
-        surface = sum(
-            surface_terms(
-                r.normal,
-                r.depth,
-                r.alpha,
-                r.color[..., 3] if which[1] else None,
-                grid.K,
-                config.smooth_step,
-                which,
-            )
-            for r in renders
-        ) / len(renders)
-        weights = (config.normal_weight, config.spread_weight, config.smooth_weight)
-        total = total + sum(w * surface[k] for k, w in enumerate(weights) if which[k])
-        terms["normal"] = surface[0].detach()
-    if config.curvature_weight > 0:
-        cu = sum(depth_curvature_loss(r.depth, r.alpha) for r in renders)
-        total = total + config.curvature_weight * cu / len(renders)
-    if config.alpha_weight > 0:
-        alpha = torch.stack([r.alpha.mean() for r in renders]).mean()
-        total = total + config.alpha_weight * alpha
-    g = field.gaussians
-    if config.opacity_reg > 0:
-        total = total + config.opacity_reg * g.opacities.mean()
-    if config.binary_weight > 0 and step > config.binary_from * config.iterations:
-        o = g.opacities
-        total = total + config.binary_weight * (o * (1 - o)).mean()
-    if config.flatten_weight > 0:
-        s = g.log_scales
-        total = total + config.flatten_weight * (s.min(1).values - s.max(1).values).exp().mean()
-    return renders, total, terms
+) -> list[Render]:
+    """The views on ``grid`` at the frames (from the corrected poses when ``corrections`` are
+    given); with ``spread``, the depths' second moment too (render()); ``hidden``: the
+    background alone."""
+    if corrections is None:
+        views = [data.viewmats()[int(f)] for f in frames]
+        return [field.render_view(v, grid, sh_degree, spread, hidden) for v in views]
+    times = data.windows.frame_times[frames]
+    poses = corrections.apply(data.track.at(times), times)
+    return [field.render(T, grid, sh_degree, spread, hidden) for T in poses]

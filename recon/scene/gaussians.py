@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from evcap.recon.config import RadianceConfig
+from evcap.errors import InputError
 from evcap.recon.scene.cube_map import cube_lookup
 from evcap.recon.scene.neighbours import nearest
 from evcap.recon.scene.sh import C0, eval_sh
@@ -160,23 +161,70 @@ class Background(torch.nn.Module):
         return F.softplus(self.faces)
 
 
+@dataclass(frozen=True)
+class BackgroundConfig:
+    """The distant background (Background)."""
+
+    size: int = 64
+    """Texels along an edge of each face of the cube map."""
+    known: tuple[float, float, float] | None = None
+    """The backdrop's radiance (linear RGB) when it is known, as a NeRF-Synthetic release's
+    white behind every view: held there, not learnt, it fixes the gain the anchor is for (the
+    anchor is then left out) and leaves no room for fog of its colour; none: it is learnt."""
+    first: float = 0.0
+    """The fraction of the run, at its start, that fits the background alone (the Gaussians
+    hidden); never where the background is known."""
+
+    def __post_init__(self) -> None:
+        if self.size < 1 or not 0 <= self.first <= 1:
+            raise InputError("background.size must be at least 1, background.first in [0, 1]")
+        if self.known is not None and (len(self.known) != 3 or not all(v > 0 for v in self.known)):
+            raise InputError("background.known is a radiance: three numbers above 0 (linear RGB)")
+
+
+@dataclass(frozen=True)
+class LearningRates:
+    """Adam's learning rates of stage I's parameters."""
+
+    means: float = 1.6e-4
+    """The positions', in units of the scene's extent, at the start; they decay exponentially
+    to ``means_final`` by the end of the run (3DGS)."""
+    means_final: float = 1.6e-6
+    """The positions' at the end of the run."""
+    scales: float = 5e-3
+    """The log scales'."""
+    quats: float = 1e-3
+    """The rotations'."""
+    opacity: float = 0.025
+    """The opacities' (logits)."""
+    sh: float = 2.5e-3
+    """The degree-0 radiance coefficients'; the higher bands take a twentieth of it."""
+    background: float = 0.1
+    """The background's: it must be learnt fast; where it lags, Gaussians grow in front of
+    it."""
+
+    def __post_init__(self) -> None:
+        if min(self.means, self.means_final) <= 0:
+            raise InputError("lr.means and lr.means_final must be above 0 (they decay by a log)")
+
+
 def make_optimizer(
-    model: Gaussians, background: Background, config: RadianceConfig, extent: float
+    model: Gaussians, background: Background, lr: LearningRates, extent: float
 ) -> torch.optim.Adam:
     groups = [
-        {"params": [model.means], "lr": config.lr_means * extent, "name": "means"},
-        {"params": [model.log_scales], "lr": config.lr_scales, "name": "log_scales"},
-        {"params": [model.quats], "lr": config.lr_quats, "name": "quats"},
-        {"params": [model.opacity_logits], "lr": config.lr_opacity, "name": "opacity_logits"},
-        {"params": [model.sh_dc], "lr": config.lr_sh, "name": "sh_dc"},
-        {"params": [model.sh_rest], "lr": config.lr_sh / 20, "name": "sh_rest"},
-        {"params": [background.faces], "lr": config.lr_background, "name": "background"},
+        {"params": [model.means], "lr": lr.means * extent, "name": "means"},
+        {"params": [model.log_scales], "lr": lr.scales, "name": "log_scales"},
+        {"params": [model.quats], "lr": lr.quats, "name": "quats"},
+        {"params": [model.opacity_logits], "lr": lr.opacity, "name": "opacity_logits"},
+        {"params": [model.sh_dc], "lr": lr.sh, "name": "sh_dc"},
+        {"params": [model.sh_rest], "lr": lr.sh / 20, "name": "sh_rest"},
+        {"params": [background.faces], "lr": lr.background, "name": "background"},
     ]
     return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
 
 
-def means_lr(config: RadianceConfig, extent: float, step: int) -> float:
+def means_lr(lr: LearningRates, extent: float, step: int, iterations: int) -> float:
     """Exponential decay of the positions' learning rate over the run (3DGS)."""
-    s = min(step / max(config.iterations, 1), 1.0)
-    a, b = config.lr_means * extent, config.lr_means_final * extent
+    s = min(step / max(iterations, 1), 1.0)
+    a, b = lr.means * extent, lr.means_final * extent
     return math.exp((1 - s) * math.log(a) + s * math.log(b))

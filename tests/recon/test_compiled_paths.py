@@ -15,7 +15,7 @@ from evcap.events import Events
 from evcap.recon import config as cfg
 from evcap.recon.events import windows as event_windows
 from evcap.recon.events._loss_cpu import event_loss_cpu
-from evcap.recon.events.windows import EventWindows
+from evcap.recon.events.windows import EventWindows, WindowsConfig
 from evcap.recon.material.shading import prefiltered
 from evcap.recon.radiance import losses
 from evcap.recon.radiance._surface_terms_cpu import surface_terms_cpu
@@ -304,9 +304,10 @@ def test_crowded_events_are_those_within_twice_the_refractory_period(tmp_path, m
         w.append_events(events)
     monkeypatch.setattr(event_windows, "MIN_EVENTS", 0)
     c = np.full((6, 8), 0.2)
-    optics = SimpleNamespace(threshold_on=c, threshold_off=c)
+    optics = SimpleNamespace(threshold_on=c, threshold_off=c, refractory_us=500.0)
+    grid = WindowsConfig(frame_interval_ms=10, max_frames=10, refractory_bound=True)
     with Session.open(path) as s:
-        windows = EventWindows.from_session(s, optics, 0, 10_000, 10_000, 10, refractory_us=500.0)
+        windows = EventWindows.from_session(s, optics, 0, 10_000, grid)
     on, off = windows.crowded.counts(0, 1)
     assert on[1] == 2 and off[3 * 8 + 2] == 1 and on.sum() + off.sum() == 3
     measured = torch.tensor([0.6, -0.4, 0.6])

@@ -1,11 +1,124 @@
 """The presets: `paper` is the method's reference run, its settings read against
 reference/method.md (tests/recon/test_reconstruct.py runs it end to end, its steps cut
-short)."""
+short); every preset resolves to the settings it had before they were nested by component."""
 
+import dataclasses
+import json
 import re
+from pathlib import Path
 
-from evcap.recon import config as cfg
+import pytest
+
+from evcap.recon.config import PRESET_NAMES
+from evcap.recon.presets import preset
+from evcap.recon.settings import names
 from evcap.sim.scene import SensorSpec
+
+# each preset's settings as the code before issue 69 resolved them (its flat RadianceConfig
+# and MaterialConfig, written by that code), and where each flat name went
+BEFORE = json.loads((Path(__file__).parent / "presets_before_issue_69.json").read_text())
+STAGE_ONE = {
+    "coarse_until": "coarse.until",
+    "coarse_resolution": "coarse.resolution",
+    "init_gaussians": "init.gaussians",
+    "init_on_points": "init.on_points",
+    "init_size_px": "init.size_px",
+    "max_gaussians": "densify.max_gaussians",
+    "frame_interval_ms": "windows.frame_interval_ms",
+    "max_frames": "windows.max_frames",
+    "max_window_frames": "windows.max_window_frames",
+    "views_per_step": "windows.views_per_step",
+    "refractory_bound": "windows.refractory_bound",
+    "noise_filter_ms": "windows.noise_filter_ms",
+    "log_eps": "event_loss.log_eps",
+    "zero_events": "event_loss.zero_events",
+    "silent_weight": "event_loss.silent_weight",
+    "noise_rates": "event_loss.noise_rates",
+    "anchor_weight": "loss.anchor.weight",
+    "anchor_level": "loss.anchor.level",
+    "normal_weight": "loss.normal.weight",
+    "normal_from": "loss.normal.start",
+    "opacity_reg": "loss.opacity.weight",
+    "spread_weight": "loss.spread.weight",
+    "alpha_weight": "loss.alpha.weight",
+    "binary_weight": "loss.binary.weight",
+    "binary_from": "loss.binary.start",
+    "flatten_weight": "loss.flatten.weight",
+    "smooth_weight": "loss.smooth.weight",
+    "smooth_step": "loss.smooth.step",
+    "curvature_weight": "loss.curvature.weight",
+    "quiet_tv_weight": "loss.quiet_tv.weight",
+    "background_tv_weight": "loss.background_tv.weight",
+    "confine": "densify.confine",
+    "background_first": "background.first",
+    "background_size": "background.size",
+    "known_background": "background.known",
+    "densify_from": "densify.start",
+    "densify_until": "densify.stop",
+    "densify_every": "densify.every",
+    "grad_threshold": "densify.grad_threshold",
+    "percent_dense": "densify.percent_dense",
+    "min_opacity": "densify.min_opacity",
+    "opacity_reset_every": "densify.reset_every",
+    "pose_keyframe_ms": "poses.keyframe_ms",
+    "pose_from": "poses.start",
+    "lr_pose_rotation": "poses.lr_rotation",
+    "lr_pose_shift": "poses.lr_shift",
+    "pose_smooth_weight": "poses.smooth_weight",
+    # before, the preset's False was always replaced by reconstruct()'s refine_poses, "auto"
+    # unless asked otherwise; now that choice is the setting
+    "refine_poses": "poses.refine",
+}
+STAGE_ONE |= {f"lr_{k}": f"lr.{k}" for k in ("means", "means_final", "scales", "quats")}
+STAGE_ONE |= {f"lr_{k}": f"lr.{k}" for k in ("opacity", "sh", "background")}
+# settings the code before did not have, and the values that do what it did: every term but
+# the normal's and the binary's counted from the start
+NEW = {f"loss.{t}.start": 0.0 for t in ("anchor", "spread", "smooth", "curvature", "quiet_tv")}
+NEW |= {f"loss.{t}.start": 0.0 for t in ("background_tv", "alpha", "opacity", "flatten")}
+STAGE_TWO = {
+    "distill_weight": "loss.distill",
+    "anchor_weight": "loss.anchor",
+    "tv_weight": "loss.tv",
+    "tv_normal_weight": "loss.tv_normals",
+    "edge_beta": "loss.edge_beta",
+    "edge_slice_ms": "edges.slice_ms",
+    "edge_frames": "edges.frames",
+}
+STAGE_TWO |= {f"lr_{k}": f"lr.{k}" for k in ("base_color", "roughness", "normals")}
+STAGE_TWO |= {f"lr_{k}": f"lr.{k}" for k in ("indirect", "light")}
+
+
+def as_before(config, renamed: dict[str, str]) -> dict:
+    """The nested config's settings under the flat names they had before."""
+    now = {name: value for name, value in names(config)}
+    for name, value in NEW.items():
+        if name in now:
+            assert now.pop(name) == value, name
+    back = {old: now.pop(new) for old, new in renamed.items() if new in now}
+    back |= now  # the names that did not change
+    back = {k: list(v) if isinstance(v, tuple) else v for k, v in back.items()}
+    if back.get("refine_poses") == "auto":
+        back["refine_poses"] = False
+    return back
+
+
+@pytest.mark.parametrize("name", PRESET_NAMES)
+def test_every_preset_resolves_to_the_settings_it_had(name):
+    settings = preset(name)
+    assert as_before(settings.stage1, STAGE_ONE) == BEFORE[name]["stage1"]
+    assert as_before(settings.stage2, STAGE_TWO) == BEFORE[name]["stage2"]
+
+
+def test_no_config_has_more_than_twenty_settings_of_its_own():
+    def configs(config):
+        yield config
+        for f in dataclasses.fields(config):
+            value = getattr(config, f.name)
+            if dataclasses.is_dataclass(value):
+                yield from configs(value)
+
+    for c in configs(preset("paper")):
+        assert len(dataclasses.fields(c)) <= 20, type(c).__name__
 
 
 def number(text: str, pattern: str) -> float:
@@ -16,28 +129,28 @@ def number(text: str, pattern: str) -> float:
 
 def test_paper_is_the_methods_stage_one(method_summary):
     method = method_summary
-    paper = cfg.preset("paper")
+    paper = preset("paper").stage1
     loss = re.search(r"Stage I: L = L_event \+ ([\d.]+) L_GW \+ ([\d.]+) L_normal", method)
     assert loss, "method.md no longer states stage I's loss"
-    assert paper.anchor_weight == float(loss.group(1))
-    assert paper.normal_weight == float(loss.group(2))
-    assert paper.anchor_level == number(method, r"pulled to g = ([\d.]+)")
+    assert paper.loss.anchor.weight == float(loss.group(1))
+    assert paper.loss.normal.weight == float(loss.group(2))
+    assert paper.loss.anchor.level == number(method, r"pulled to g = ([\d.]+)")
     assert paper.iterations == number(method, r"Stage I ([\d,]+) iterations")
-    assert paper.lr_opacity == number(method, r"opacity lr ([\d.]+)")
+    assert paper.lr.opacity == number(method, r"opacity lr ([\d.]+)")
     assert paper.resolution == 1.0  # "800x800 input": the sensor at its own size
-    assert paper.opacity_reset_every > 0  # "standard 3DGS ... opacity reset"
+    assert paper.densify.reset_every > 0  # "standard 3DGS ... opacity reset"
     # a pixel without events is "no change" over every pixel: the method's plain sum
-    assert paper.zero_events == "target" and paper.silent_weight is None
+    assert paper.event_loss.zero_events == "target" and paper.event_loss.silent_weight is None
     # and nothing the method does not have
-    ours = ("spread_weight", "alpha_weight", "binary_weight", "flatten_weight", "smooth_weight")
-    ours += ("curvature_weight", "quiet_tv_weight", "background_tv_weight", "opacity_reg")
-    assert all(getattr(paper, name) == 0 for name in ours)
-    assert paper.background_first == 0 and paper.confine == 0 and not paper.refine_poses
+    ours = ("spread", "alpha", "binary", "flatten", "smooth", "curvature", "quiet_tv")
+    ours += ("background_tv", "opacity")
+    assert all(getattr(paper.loss, name).weight == 0 for name in ours)
+    assert paper.background.first == 0 and paper.densify.confine == 0
 
 
 def test_paper_is_the_methods_stage_two(method_summary):
     method = method_summary
-    paper = cfg.material_preset("paper")
+    paper = preset("paper").stage2
     loss = re.search(
         r"Stage II: L = L_event \+ ([\d.]+) L_rad \+ ([\d.]+) L_GW \+ ([\d.]+) L_TV, "
         r"beta = ([\d.]+), lambda_n = ([\d.]+)",
@@ -45,10 +158,10 @@ def test_paper_is_the_methods_stage_two(method_summary):
     )
     assert loss, "method.md no longer states stage II's loss"
     distill, anchor, tv, beta, lambda_n = (float(x) for x in loss.groups())
-    assert (paper.distill_weight, paper.anchor_weight, paper.tv_weight) == (distill, anchor, tv)
-    assert (paper.edge_beta, paper.tv_normal_weight) == (beta, lambda_n)
+    assert (paper.loss.distill, paper.loss.anchor, paper.loss.tv) == (distill, anchor, tv)
+    assert (paper.loss.edge_beta, paper.loss.tv_normals) == (beta, lambda_n)
     assert paper.iterations == number(method, r"Stage II ([\d,]+) more")
-    assert paper.lr_normals > 0  # the normals are learnt (fast freezes them)
+    assert paper.lr.normals > 0  # the normals are learnt (fast freezes them)
     assert paper.normals_from == "planes"  # and the normals start as they always did
 
 

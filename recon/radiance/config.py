@@ -1,0 +1,91 @@
+"""Stage I's settings: its own few, and the small configs of its components nested in them,
+each defined beside its component. A setting is named by its dotted path from here
+(``densify.grad_threshold``; recon/settings.py reads, replaces and describes them)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from evcap.errors import InputError
+from evcap.recon.events.loss import EventLossConfig
+from evcap.recon.events.windows import WindowsConfig
+from evcap.recon.radiance.densify import DensifyConfig
+from evcap.recon.radiance.pose_refinement import PoseRefinementConfig
+from evcap.recon.radiance.terms import LossConfig
+from evcap.recon.scene.gaussians import BackgroundConfig, LearningRates
+
+
+def _check_scale(name: str, value: float) -> None:
+    if not 0 < value <= 4:
+        raise InputError(f"{name} is a render scale in (0, 4]; 1 is the sensor's")
+
+
+@dataclass(frozen=True)
+class InitConfig:
+    """Stage I's first Gaussians."""
+
+    gaussians: int = 5000
+    """How many: random points inside the volume the cameras look at."""
+    on_points: float = 0.0
+    """The share of them started on structure from motion's points instead, when the poses
+    come with them (`evcap poses` writes them beside the poses)."""
+    size_px: float = 1.0
+    """Their largest starting size (sigma), in render pixels."""
+
+    def __post_init__(self) -> None:
+        if self.gaussians < 1 or self.size_px <= 0:
+            raise InputError("init.gaussians must be at least 1 and init.size_px above 0")
+        if not 0 <= self.on_points <= 1:
+            raise InputError("init.on_points is a share of init.gaussians, in [0, 1]")
+
+
+@dataclass(frozen=True)
+class CoarseConfig:
+    """Coarse to fine: the run's first part renders at a coarser scale."""
+
+    until: float = 0.0
+    """The fraction of the run, at its start, rendered at ``resolution`` (0: none)."""
+    resolution: float = 0.25
+    """Its render scale, relative to the sensor."""
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.until <= 1:
+            raise InputError("coarse.until is a fraction of the run, in [0, 1]")
+        _check_scale("coarse.resolution", self.resolution)
+
+
+@dataclass(frozen=True)
+class RadianceConfig:
+    """Stage I: the event-supervised Gaussian radiance field."""
+
+    iterations: int = 1000
+    """Optimisation steps."""
+    resolution: float = 0.5
+    """The render scale, relative to the sensor (1: its pixels)."""
+    sh_degree: int = 1
+    """The view dependence of the Gaussians' radiance (0..3)."""
+    coarse: CoarseConfig = CoarseConfig()
+    """Coarse to fine."""
+    init: InitConfig = InitConfig()
+    """The first Gaussians."""
+    windows: WindowsConfig = WindowsConfig()
+    """The events' time grid and the windows a step draws."""
+    event_loss: EventLossConfig = EventLossConfig()
+    """How the rendered change is compared with the events."""
+    loss: LossConfig = LossConfig()
+    """The loss's other terms."""
+    lr: LearningRates = LearningRates()
+    """The learning rates."""
+    densify: DensifyConfig = DensifyConfig()
+    """Densification (3DGS's adaptive density control)."""
+    background: BackgroundConfig = BackgroundConfig()
+    """The distant background."""
+    poses: PoseRefinementConfig = PoseRefinementConfig()
+    """The trajectory's refinement by the events."""
+
+    def __post_init__(self) -> None:
+        if self.iterations < 1:
+            raise InputError("stage1.iterations must be at least 1")
+        _check_scale("resolution", self.resolution)
+        if not 0 <= self.sh_degree <= 3:
+            raise InputError("sh_degree must be 0..3")
