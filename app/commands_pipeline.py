@@ -7,10 +7,9 @@ import sys
 from pathlib import Path
 
 from evcap.app.command import Command
-from evcap.app.pipeline import STEPS
-
-# light: the reconstruction's names and choices, without torch
-from evcap.recon.config import DEVICES, PRESET_NAMES
+from evcap.app.demo import PRESETS as DEMO_PRESETS
+from evcap.app.reconstruct_flags import add_reconstruct_arguments, options_from
+from evcap.pipeline import STEPS
 
 
 def _batch_arguments(p: argparse.ArgumentParser) -> None:
@@ -24,9 +23,7 @@ def _batch_arguments(p: argparse.ArgumentParser) -> None:
         choices=STEPS,
         help="the steps to run (default: all of them, in this order)",
     )
-    p.add_argument("--preset", default="fast", choices=PRESET_NAMES, help="default: fast")
-    p.add_argument("--device", default="cpu", choices=DEVICES, help="cuda: a GPU per task")
-    p.add_argument("--seed", type=int, default=0, help="the reconstructions' seed")
+    add_reconstruct_arguments(p)
     p.add_argument("--cpus", type=int, default=1, help="cores per step's task (default 1)")
     p.add_argument(
         "--workers", type=int, help="cores of the Ray started here (default: all of them)"
@@ -41,15 +38,15 @@ def _batch(args: argparse.Namespace) -> int:
     from evcap.batch.manifest import read_manifest
     from evcap.batch.run import run_batch
 
+    options = options_from(args)
+    options.resolved()  # a setting misnamed is refused before any recording runs
     manifest = read_manifest(args.manifest)
     with progress_bar(f"{len(manifest.recordings)} recordings") as update:
         rows = run_batch(
             manifest,
             args.output,
             steps=tuple(args.steps),
-            preset=args.preset,
-            device=args.device,
-            seed=args.seed,
+            options=options,
             cpus=args.cpus,
             address=args.address,
             workers=args.workers,
@@ -86,20 +83,17 @@ def _demo_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "-o", "--output", default="evcap-demo", metavar="DIR", help="default: evcap-demo"
     )
-    p.add_argument(
-        "--preset",
-        default="small",
-        choices=("small", "fast"),
-        help="small: minutes on a CPU (default); fast: the reconstruction's laptop preset",
-    )
     p.add_argument("--fixtures", metavar="DIR", help="where the demo's captures are")
     p.add_argument("-f", "--force", action="store_true", help="start a demo folder over")
+    add_reconstruct_arguments(p, preset="small", presets=DEMO_PRESETS)
 
 
 def _demo(args: argparse.Namespace) -> int:
     from evcap.app.demo import run_demo
 
-    run_demo(args.output, preset=args.preset, fixtures=args.fixtures, force=args.force)
+    options = options_from(args)
+    options.resolved()  # a setting misnamed is refused before the demo starts
+    run_demo(args.output, options, fixtures=args.fixtures, force=args.force)
     return 0
 
 

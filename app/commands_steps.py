@@ -1,25 +1,17 @@
 """The commands of the steps' floor, one step each: simulate, calibrate, poses, reconstruct,
-report, export, view."""
+report, export, view. Calibrate, poses, reconstruct and report parse their flags and run the
+step as the pipeline does (evcap.pipeline.steps: each step wired once), then say what it made."""
 
 from __future__ import annotations
 
 import argparse
 
 from evcap.app.command import Command
+from evcap.app.reconstruct_flags import add_reconstruct_arguments, options_from, show_settings
 from evcap.errors import InputError
 
 # light: the reconstruction's names and choices, without torch
-from evcap.recon.config import (
-    ABLATION_FLAGS,
-    BACKENDS,
-    DEVICES,
-    EFFECT_MODES,
-    PRESET_NAMES,
-    REFINE_POSES,
-    STAGES,
-    ZERO_EVENTS,
-    MeshConfig,
-)
+from evcap.recon.config import STAGES, MeshConfig
 
 
 def _simulate_arguments(p: argparse.ArgumentParser) -> None:
@@ -173,19 +165,17 @@ def _calibrate(args: argparse.Namespace) -> int:
     if args.session is None:
         raise InputError("give the session to calibrate (or only --print-board OUT.png)")
     from evcap._progress import progress_bar
-    from evcap.calib.calibrate import calibrate, check_targets, write_calibration
+    from evcap.pipeline import calibrate_step
 
     targets = [args.session, *(args.apply_to or ())]
-    check_targets(targets)  # before minutes of work
-    with progress_bar("calibrating") as update:
-        cal = calibrate(
-            args.session,
-            board=board,
-            skip=frozenset(args.skip or ()),
-            say=print,
-            progress=update,
-        )
-    write_calibration(targets, cal)
+    cal = calibrate_step(
+        args.session,
+        board=board,
+        also=args.apply_to or (),
+        skip=frozenset(args.skip or ()),
+        say=print,
+        progress=progress_bar,
+    )
     print(cal.summary())
     print(f"written to /calibration of {', '.join(str(p) for p in targets)}")
     if args.report:
@@ -263,23 +253,21 @@ def _poses_arguments(p: argparse.ArgumentParser) -> None:
 
 def _poses(args: argparse.Namespace) -> int:
     from evcap._progress import progress_bar
-    from evcap.poses.estimate import estimate_poses, write_poses
+    from evcap.pipeline import poses_step
 
-    with progress_bar("poses") as update:
-        result = estimate_poses(
-            args.session,
-            kind=args.frames,
-            weights=args.weights,
-            rate_hz=args.rate,
-            export_frames=args.export_frames,
-            gravity=not args.no_gravity,
-            gyro=not args.no_gyro,
-            aps={"auto": None, "on": True, "off": False}[args.aps],
-            threads=args.threads,
-            say=print,
-            progress=update,
-        )
-    write_poses(args.session, result)
+    result = poses_step(
+        args.session,
+        kind=args.frames,
+        weights=args.weights,
+        rate_hz=args.rate,
+        export_frames=args.export_frames,
+        gravity=not args.no_gravity,
+        gyro=not args.no_gyro,
+        aps={"auto": None, "on": True, "off": False}[args.aps],
+        threads=args.threads,
+        say=print,
+        progress=progress_bar,
+    )
     print(result.summary())
     print(f"written to /poses of {args.session} ({result.seconds:.0f} s of structure from motion)")
     return 0
@@ -297,8 +285,10 @@ POSES = Command(
 
 
 def _reconstruct_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("session", help="the session file (.h5), with /calibration and /poses")
-    p.add_argument("-o", "--output", required=True, metavar="OUT", help="the folder to write")
+    p.add_argument(
+        "session", nargs="?", help="the session file (.h5), with /calibration and /poses"
+    )
+    p.add_argument("-o", "--output", metavar="OUT", help="the folder to write")
     p.add_argument(
         "--stage",
         default="all",
@@ -306,69 +296,7 @@ def _reconstruct_arguments(p: argparse.ArgumentParser) -> None:
         help="radiance: stage I (geometry, radiance); material: stage II (base color, "
         "roughness, normals, light) from OUT's stage-I checkpoint; all: both (default)",
     )
-    p.add_argument(
-        "--preset",
-        default="fast",
-        choices=PRESET_NAMES,
-        help="tiny: a smoke test; small: a minute or two on a CPU (`evcap demo`'s); fast: "
-        "minutes on a laptop CPU (default); paper: the method's reference run, for a GPU",
-    )
-    p.add_argument("--device", default="cpu", choices=DEVICES, help="default: cpu")
-    p.add_argument(
-        "--backend",
-        choices=BACKENDS,
-        help="the rasterizer: cpu (compiled, the default on the CPU), torch (the pure-PyTorch "
-        "reference, any device), gsplat (CUDA; the default on cuda when it is installed)",
-    )
-    p.add_argument(
-        "--resolution", type=float, metavar="R", help="render scale relative to the sensor"
-    )
-    p.add_argument("--iterations", type=int, metavar="N", help="stage I steps")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument(
-        "--zero-events",
-        choices=ZERO_EVENTS,
-        help="a pixel without events means no change (target) or |change| < C (bound)",
-    )
-    p.add_argument(
-        "--refractory-bound",
-        action="store_true",
-        help="a window whose pixel fired within twice the calibration's refractory period "
-        "bounds the change's size from below instead of giving it (the period's change is lost)",
-    )
-    p.add_argument(
-        "--noise-filter",
-        type=float,
-        default=0.0,
-        metavar="MS",
-        help="leave out the events no neighbouring pixel's event came within MS ms before (a "
-        "background-activity filter, for dim light; 5 is a start; default 0: none)",
-    )
-    p.add_argument("--material-iterations", type=int, metavar="N", help="stage II steps")
-    for effect, what in (("visibility", "shadows"), ("indirect", "light from other surfaces")):
-        p.add_argument(
-            f"--{effect}",
-            choices=EFFECT_MODES,
-            help=f"model {what} (default auto: when the scene has occluders)",
-        )
-    p.add_argument(
-        "--without",
-        action="append",
-        choices=[*ABLATION_FLAGS, "visibility", "indirect"],
-        help="leave a term of stage II out (the method's ablations); repeatable",
-    )
-    p.add_argument(
-        "--relight",
-        metavar="ENV",
-        help="also render the views under this environment (latitude-longitude image, z up)",
-    )
-    p.add_argument(
-        "--refine-poses",
-        default="auto",
-        choices=REFINE_POSES,
-        help="stage I corrects the camera's path with the events and writes it to "
-        "OUT/poses.h5 (default auto: when `evcap poses` estimated it)",
-    )
+    add_reconstruct_arguments(p)
     p.add_argument(
         "--write-poses",
         action="store_true",
@@ -380,46 +308,27 @@ def _reconstruct_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="start over: replace the reconstruction in OUT, finished or interrupted",
     )
-
-
-def _radiance_settings(args: argparse.Namespace) -> dict:
-    """Stage I's settings the command line gives over the preset's."""
-    settings: dict = {"refractory_bound": True} if args.refractory_bound else {}
-    if args.noise_filter:
-        settings["noise_filter_ms"] = args.noise_filter
-    return settings
+    p.add_argument(
+        "--show-settings",
+        action="store_true",
+        help="print every setting these flags resolve to, by its dotted name (for --set and "
+        "--settings), with what it is, and stop",
+    )
 
 
 def _reconstruct(args: argparse.Namespace) -> int:
     from evcap._progress import progress_bar
-    from evcap.recon.reconstruct import reconstruct
+    from evcap.pipeline import reconstruct_step
 
-    without = set(args.without or ())
-    with progress_bar(f"reconstructing ({args.preset})") as update:
-        result = reconstruct(
-            args.session,
-            args.output,
-            preset=args.preset,
-            stage=args.stage,
-            device=args.device,
-            backend=args.backend,
-            resolution=args.resolution,
-            iterations=args.iterations,
-            material_iterations=args.material_iterations,
-            seed=args.seed,
-            zero_events=args.zero_events,
-            radiance_settings=_radiance_settings(args),
-            visibility="off" if "visibility" in without else args.visibility,
-            indirect="off" if "indirect" in without else args.indirect,
-            ablate=tuple(ABLATION_FLAGS[w] for w in sorted(without) if w in ABLATION_FLAGS),
-            relight=args.relight,
-            refine_poses=args.refine_poses,
-            write_poses=args.write_poses,
-            overwrite=args.force,
-            resume=not args.force,
-            say=print,
-            progress=update,
-        )
+    resume = "start over" if args.force else "go on"
+    fixed = {"stage": args.stage, "write_poses": args.write_poses}
+    options = options_from(args, resume=resume, **fixed)
+    if args.show_settings:
+        print(show_settings(options))
+        return 0
+    if args.session is None or args.output is None:
+        raise InputError("give the session and the folder to write: SESSION -o OUT")
+    result = reconstruct_step(args.session, args.output, options, say=print, progress=progress_bar)
     stopped = ""
     if result.interrupted:
         stopped = " (interrupted: what was learnt so far; the same command goes on from there)"
@@ -461,9 +370,9 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _report(args: argparse.Namespace) -> int:
-    from evcap.report.html import write_report
+    from evcap.pipeline import report_step
 
-    page = write_report(args.output, args.session)
+    page = report_step(args.output, args.session)
     print(f"{page}: open it in a browser (self-contained, no network needed)")
     return 0
 

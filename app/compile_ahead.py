@@ -72,6 +72,7 @@ def compile_kernels(fixtures: Path, preset: Preset) -> None:
     import numpy as np
 
     from evcap.app.demo import SCENE, record_fixture
+    from evcap.recon.options import ReconstructOptions
     from evcap.recon.reconstruct import reconstruct
     from evcap.records import Calibration, GroundTruth
     from evcap.session import Session
@@ -97,14 +98,9 @@ def compile_kernels(fixtures: Path, preset: Preset) -> None:
             hot_pixels=np.zeros((h, w), bool),
             event_rate_hz=ones,
         ).write(session)
-        reconstruct(
-            session,
-            Path(tmp) / "reconstruction",
-            preset=preset,
-            iterations=3,
-            material_iterations=2,
-            refine_poses="on",
-        )
+        steps = {"stage1.iterations": 3, "stage2.iterations": 2, "stage1.poses.refine": "on"}
+        options = ReconstructOptions(preset=preset, settings=steps)
+        reconstruct(session, Path(tmp) / "reconstruction", options)
 
 
 if __name__ == "__main__":

@@ -16,14 +16,16 @@ from collections.abc import Callable
 from pathlib import Path
 
 from evcap.app.compile_ahead import KernelsAhead
-from evcap.app.pipeline import Pipeline, Progress, Settings, StepDefinition, Workspace
 from evcap.errors import InputError, OutputExistsError
+from evcap.pipeline import Pipeline, Progress, Settings, StepDefinition, Workspace
 from evcap.recon.config import Preset
+from evcap.recon.options import ReconstructOptions
 
 FIXTURES = Path(__file__).resolve().parent / "demo_data"  # package data: in the wheel too
 SCENE, CALIBRATION = "demo-scene", "demo-calibration"  # the captures
 SCENE_FILE, CALIBRATION_FILE = "scene.h5", "calibration.h5"  # their recordings, in DIR
 PRESETS: tuple[Preset, ...] = ("small", "fast")  # recon's presets that a CPU runs in minutes
+SMALL = ReconstructOptions(preset="small")  # the demo's reconstruction
 EARLIER_STATE = "demo.json"  # the state file of the demo before it ran on the pipeline
 
 
@@ -34,8 +36,8 @@ def demo_workspace(out: str | Path) -> Workspace:
 
 def demo_pipeline(
     out: str | Path,
+    options: ReconstructOptions = SMALL,
     *,
-    preset: Preset = "small",
     fixtures: str | Path | None = None,
     say: Callable[[str], None] = print,
     progress: Progress | None = None,
@@ -47,7 +49,7 @@ def demo_pipeline(
     the reconstruction."""
     ws = demo_workspace(out)
     fixtures = Path(fixtures) if fixtures is not None else FIXTURES
-    settings = Settings(preset=preset)
+    settings = Settings(reconstruct=options)
     pipeline = Pipeline(
         ws, settings, say=say, progress=progress, hint="pass --force to start the demo over"
     )
@@ -55,7 +57,7 @@ def demo_pipeline(
     pipeline.add(
         StepDefinition(
             "compile the reconstruction's kernels (a second process, beside the next steps)",
-            lambda: ahead.start(fixtures, preset),
+            lambda: ahead.start(fixtures, options.preset),
             lambda: True,
         ),
         before="calibrate",
@@ -85,18 +87,19 @@ def demo_pipeline(
 
 def run_demo(
     out: str | Path,
+    options: ReconstructOptions = SMALL,
     *,
-    preset: Preset = "small",
     fixtures: str | Path | None = None,
     force: bool = False,
     say: Callable[[str], None] = print,
     progress: Progress | None = None,
 ) -> Path:
-    """Run (or go on with) the demo into ``out``; returns the report's path."""
+    """Run (or go on with) the demo into ``out``, the reconstruction as ``options`` say;
+    returns the report's path."""
     from evcap._progress import progress_bar
 
-    if preset not in PRESETS:
-        raise InputError(f"unknown preset {preset!r}; expected one of {', '.join(PRESETS)}")
+    if options.preset not in PRESETS:
+        raise InputError(f"unknown preset {options.preset!r}; expected one of {', '.join(PRESETS)}")
     fixtures = Path(fixtures) if fixtures is not None else FIXTURES
     for name in (SCENE, CALIBRATION):
         if not (fixtures / name / "bulk.bin").exists():
@@ -109,7 +112,7 @@ def run_demo(
     ahead = KernelsAhead()  # ended below if the demo ends first (an error, Ctrl-C)
     pipeline = demo_pipeline(
         out,
-        preset=preset,
+        options,
         fixtures=fixtures,
         say=say,
         progress=progress or progress_bar,

@@ -16,13 +16,15 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from evcap.app.pipeline import STEPS, StepResult, one_line
 from evcap.batch.manifest import Manifest
 from evcap.batch.steps import Job, calibrate_group, run_step
 from evcap.batch.summary import RecordingRow, write_summary
 from evcap.errors import InputError
+from evcap.pipeline import STEPS, StepResult, one_line
+from evcap.recon.options import ReconstructOptions
 
 # how long the tasks may take to stop and save what they have after Ctrl-C
+DEFAULT_OPTIONS = ReconstructOptions()
 STOP_WAIT_S = 60.0
 
 
@@ -39,9 +41,7 @@ def run_batch(
     out: str | Path,
     *,
     steps: tuple[str, ...] = STEPS,
-    preset: str = "fast",
-    device: str = "cpu",
-    seed: int = 0,
+    options: ReconstructOptions = DEFAULT_OPTIONS,
     cpus: int = 1,
     address: str | None = None,
     workers: int | None = None,
@@ -50,7 +50,8 @@ def run_batch(
     progress: Callable[[int, int, str], None] | None = None,
 ) -> list[RecordingRow]:
     """Run the manifest into ``out``; returns a row per recording (also written to
-    out/summary.json, summary.csv and index.html). ``use_ray``: None uses Ray when it is
+    out/summary.json, summary.csv and index.html). ``options``: the reconstructions' (every
+    recording's the same); ``use_ray``: None uses Ray when it is
     installed; ``cpus``: the cores of each step's task; ``workers``: the cores of a Ray started
     here (default: all of them)."""
     unknown = [s for s in steps if s not in STEPS]
@@ -67,7 +68,7 @@ def run_batch(
         )
     out = Path(out).resolve()
     steps = tuple(s for s in STEPS if s in steps)  # always in their order
-    jobs = [Job(r, out, preset, device, seed, cpus) for r in manifest.recordings]
+    jobs = [Job(r, out, options, cpus) for r in manifest.recordings]
     total = len(manifest.groups) * ("calibrate" in steps) + sum(
         len(_steps_of(job, steps)) for job in jobs
     )
@@ -82,9 +83,10 @@ def run_batch(
     about = {
         "manifest": str(manifest.path),
         "steps": ", ".join(steps),
-        "preset": preset,
-        "device": device,
-        "seed": seed,
+        "preset": options.preset,
+        "device": options.device,
+        "seed": options.seed,
+        "settings": ", ".join(f"{k}={v}" for k, v in options.settings) or "the preset's",
         "cores per task": cpus,
         "ran on": ("Ray at " + address if address else "Ray on this machine")
         if use_ray
@@ -167,7 +169,7 @@ def _run_on_ray(jobs, steps, manifest, rows, calibrations, address, workers, say
 
 def _submit_and_wait(ray, jobs, steps, manifest, rows, calibrations, say, tick) -> None:
     cpus = jobs[0].cpus if jobs else 1
-    gpu = 1 if jobs and jobs[0].device == "cuda" else 0
+    gpu = 1 if jobs and jobs[0].options.device == "cuda" else 0
     calibrate_task = ray.remote(calibrate_group)
     step_task = ray.remote(run_step)
     # a failed step is a result, not an exception: nothing for Ray to retry

@@ -1,4 +1,4 @@
-"""The batch's work on one recording: the pipeline (evcap.app.pipeline) in the recording's
+"""The batch's work on one recording: the pipeline (evcap.pipeline) in the recording's
 workspace OUTDIR/NAME, the recording copied in as OUTDIR/NAME/session.h5 (the original is only
 read), and each group's calibration recording calibrated once, in OUTDIR/calibration/GROUP/.
 """
@@ -8,9 +8,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from evcap.app.pipeline import Pipeline, Settings, Step, StepResult, Workspace
 from evcap.batch.manifest import Group, Recording
-from evcap.recon.config import Device, Preset
+from evcap.pipeline import Pipeline, Settings, Step, StepResult, Workspace
+from evcap.recon.options import ReconstructOptions
 
 START_OVER = "delete it to start the recording over"
 
@@ -21,9 +21,7 @@ class Job:
 
     recording: Recording
     out: Path  # OUTDIR
-    preset: Preset = "fast"
-    device: Device = "cpu"
-    seed: int = 0
+    options: ReconstructOptions = ReconstructOptions()  # the reconstruction's
     cpus: int = 1  # threads each step may use (what its Ray task asks for)
 
     @property
@@ -36,7 +34,7 @@ class Job:
 
     @property
     def settings(self) -> Settings:
-        return Settings(preset=self.preset, device=self.device, seed=self.seed, cpus=self.cpus)
+        return Settings(reconstruct=self.options, cpus=self.cpus)
 
 
 def group_workspace(out: Path, group: Group) -> Workspace:

@@ -10,8 +10,8 @@ import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from evcap.app.pipeline import STEPS, Status, StepResult, Workspace
 from evcap.atomic_write import write_text_atomic
+from evcap.pipeline import STEPS, Status, StepResult, Workspace
 from evcap.records import Figures
 from evcap.records.result import SHOWN
 

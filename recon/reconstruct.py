@@ -57,7 +57,7 @@ from evcap.recon.radiance.stage import (
 from evcap.recon.raster.rasterize import pick_backend
 from evcap.recon.scene.cube_map import mip_chain
 from evcap.recon.scene.optics import SensorOptics
-from evcap.recon.settings import to_dict
+from evcap.recon.settings import NONE, to_dict
 from evcap.records import (
     Figures,
     GroundTruth,
@@ -317,10 +317,10 @@ def _write(plan: Plan, run: Run, session_path: str | Path) -> None:
             "ablate": ",".join(o.ablate),
             "relight": str(o.relight) if o.relight else None,
         },
-        "stage1": to_dict(plan.stage1),
+        "stage1": to_dict(plan.stage1, NONE),
     }
     if plan.fits_material:
-        sections["stage2"] = to_dict(plan.stage2)
+        sections["stage2"] = to_dict(plan.stage2, NONE)
     out.write_config(sections)
     out.write_result(result)
     # an interrupted run's poses are not the session's yet: it goes on from the session's

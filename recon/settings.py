@@ -26,16 +26,22 @@ def is_config(value: object) -> bool:
     return dataclasses.is_dataclass(value) and not isinstance(value, type)
 
 
-def to_dict(config: object) -> dict:
-    """The config as nested dicts (tuples as lists: what TOML and JSON hold)."""
+# how a setting's None is written where None cannot be (TOML), and read back (a settings file,
+# --set NAME=none)
+NONE = "none"
+
+
+def to_dict(config: object, none: object = None) -> dict:
+    """The config as nested dicts (tuples as lists: what TOML and JSON hold; None as ``none``:
+    NONE for TOML)."""
 
     def plain(v: Any) -> Any:
         if isinstance(v, tuple | list):
             return [plain(x) for x in v]
-        return v
+        return none if v is None else v
 
     return {
-        f.name: to_dict(v) if is_config(v := getattr(config, f.name)) else plain(v)
+        f.name: to_dict(v, none) if is_config(v := getattr(config, f.name)) else plain(v)
         for f in dataclasses.fields(config)
     }
 
@@ -104,7 +110,7 @@ def _checked(kind: Any, value: object, dotted: str) -> object:
     value = _as_tuple(value)
     options = typing.get_args(kind) if typing.get_origin(kind) in (typing.Union, UnionType) else ()
     for option in options or (kind,):
-        if option is type(None) and value is None:
+        if option is type(None) and (value is None or value == NONE):
             return None
         if typing.get_origin(option) is typing.Literal:
             if value in typing.get_args(option):
@@ -168,7 +174,16 @@ def describe(config: object, prefix: str = "") -> Iterator[tuple[str, object, st
 
 @functools.cache
 def field_docs(cls: type) -> dict[str, str]:
-    """The docstring under each field of a dataclass (the string literal after it)."""
+    """The docstring under each field of a dataclass (the string literal after it), a base
+    class's for the fields it defines."""
+    out: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if dataclasses.is_dataclass(klass):
+            out.update(_own_field_docs(klass))
+    return out
+
+
+def _own_field_docs(cls: type) -> dict[str, str]:
     tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
     body = tree.body[0].body  # type: ignore[attr-defined]
     out = {}

@@ -16,8 +16,11 @@ import pytest
 from evcap.batch.manifest import read_manifest
 from evcap.batch.run import run_batch
 from evcap.errors import InputError, InputNotFoundError
+from evcap.recon.options import ReconstructOptions
 from evcap.sim.scene import load_scene
 from evcap.sim.simulate import simulate
+
+TINY = ReconstructOptions(preset="tiny")
 
 STEPS = ("reconstruct", "report")
 BIN = Path(sys.executable).parent
@@ -38,7 +41,7 @@ def collection(tiny_scene, tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def in_process(collection, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("in-process")
-    run_batch(read_manifest(collection), out, steps=STEPS, preset="tiny", use_ray=False)
+    run_batch(read_manifest(collection), out, steps=STEPS, options=TINY, use_ray=False)
     return out
 
 
@@ -64,7 +67,7 @@ def test_two_done_and_the_corrupt_one_failed_with_its_message(in_process):
 def test_a_rerun_skips_what_is_done(collection, in_process):
     before = {n: (in_process / n / "report.html").stat().st_mtime_ns for n in ("left", "right")}
     rows = run_batch(
-        read_manifest(collection), in_process, steps=STEPS, preset="tiny", use_ray=False
+        read_manifest(collection), in_process, steps=STEPS, options=TINY, use_ray=False
     )
     statuses = {r.name: [s.status for s in r.steps.values()] for r in rows}
     assert statuses["left"] == statuses["right"] == ["done before", "done before"]
@@ -77,7 +80,7 @@ def test_a_step_run_again_makes_those_after_it_again(collection, in_process, tmp
     out = tmp_path / "again"
     shutil.copytree(in_process, out)
     shutil.rmtree(out / "left" / "reconstruction")
-    rows = run_batch(read_manifest(collection), out, steps=STEPS, preset="tiny", use_ray=False)
+    rows = run_batch(read_manifest(collection), out, steps=STEPS, options=TINY, use_ray=False)
     left = next(r for r in rows if r.name == "left")
     assert [s.status for s in left.steps.values()] == ["done", "done"]
 
@@ -201,8 +204,8 @@ def test_a_groups_calibration_is_applied_to_its_recordings(collection, tmp_path)
 def test_ctrl_c_stops_cleanly_and_the_same_command_goes_on(
     collection, in_process, tmp_path, monkeypatch
 ):
-    from evcap.app.pipeline import Pipeline
     from evcap.batch.run import BatchInterrupted
+    from evcap.pipeline import Pipeline
 
     out = tmp_path / "stopped"
     shutil.copytree(in_process, out)
@@ -213,12 +216,28 @@ def test_ctrl_c_stops_cleanly_and_the_same_command_goes_on(
 
     monkeypatch.setattr(Pipeline, "_report", interrupted)
     with pytest.raises(BatchInterrupted, match="run the same command"):
-        run_batch(read_manifest(collection), out, steps=STEPS, preset="tiny", use_ray=False)
+        run_batch(read_manifest(collection), out, steps=STEPS, options=TINY, use_ray=False)
     left = summary(out)["left"]
     assert left["status"] == "stopped"
     assert left["steps"]["reconstruct"]["status"] == "done before"
     monkeypatch.undo()
-    rows = run_batch(read_manifest(collection), out, steps=STEPS, preset="tiny", use_ray=False)
+    rows = run_batch(read_manifest(collection), out, steps=STEPS, options=TINY, use_ray=False)
     left = next(r for r in rows if r.name == "left")
     assert [s.status for s in left.steps.values()] == ["done before", "done"]
     assert (out / "left" / "report.html").exists()
+
+
+def test_the_command_lines_settings_reach_every_recordings_stages(collection, tmp_path, capsys):
+    """`evcap batch ... --set`: the options record carries them to each recording's
+    reconstruction, as `evcap reconstruct` takes them."""
+    from evcap.app.cli import main
+
+    out = tmp_path / "out"
+    argv = ["batch", str(collection), "-o", str(out), "--in-process", "--preset", "tiny"]
+    argv += ["--steps", "reconstruct", "--set", "stage1.iterations=7", "--material-iterations=2"]
+    assert main(argv) == 1  # broken.h5 fails, the others are done
+    for name in ("left", "right"):
+        metrics = json.loads((out / name / "reconstruction" / "metrics.json").read_text())
+        assert (metrics["iterations"], metrics["material_iterations"]) == (7, 2)
+    assert main([*argv, "--set", "stage1.densify.gradient=1"]) == 2
+    assert "unknown setting 'stage1.densify.gradient'" in capsys.readouterr().err

@@ -1,9 +1,16 @@
 """The layout's rules, checked on the code: the spine (evcap/: the session, the events, the
 records) imports no step; each step imports the spine and only the steps the layout draws under
-it; the application floor (app/, batch/) sits over them all. The records own their groups, and
-ReconstructionFolder owns the files of a reconstruction folder (OUT/)."""
+it; the pipeline (pipeline/) sits over the steps, the batch (batch/) over the pipeline and the
+application (app/) over them all (import-linter's contracts in pyproject.toml, run here). The
+records own their groups, and ReconstructionFolder owns the files of a reconstruction folder
+(OUT/)."""
 
 import ast
+import os
+import subprocess
+import sys
+import tempfile
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -18,6 +25,7 @@ STEPS = (
     "sim",
     "tui",
     "evcap",
+    "pipeline",
     "batch",
     "app",
     "bench",
@@ -99,48 +107,15 @@ def test_only_the_records_name_their_groups_and_datasets(path):
     assert not named, f"{path.relative_to(ROOT)} names a record's group or dataset: {named}"
 
 
-def imported(source: str) -> set[str]:
-    out = set()
-    for node in ast.walk(ast.parse(source)):
-        if isinstance(node, ast.ImportFrom) and node.module:
-            out.add(node.module)
-        elif isinstance(node, ast.Import):
-            out.update(a.name for a in node.names)
-    return out
+# -- the layering: pyproject.toml's import-linter contracts ([tool.importlinter]) ---------------
 
-
-# what each floor may import of evcap besides the spine (the layout of DESIGN.md): the driver
-# under the monitor and the simulator's fixtures; the steps meet only through the spine; the
-# application floor over everything
-ALLOWED = {
-    "evcap": set(),
-    "acquire": set(),
-    "calib": set(),
-    "poses": set(),
-    "recon": set(),
-    "report": set(),
-    "sim": {"acquire"},
-    "tui": {"acquire"},
-    "batch": {"acquire", "calib", "poses", "recon", "report", "sim", "app"},
-    "app": {"acquire", "calib", "poses", "recon", "report", "sim", "tui", "batch"},
-}
-FLOORS = tuple(f for f in ALLOWED if f != "evcap")
-ENTRY = "evcap/__main__.py"  # `python -m evcap`: the program's entry, the command's alias
-
-
-def floor_of(module: str) -> str | None:
-    """The floor an evcap module lives on (evcap.recon.x -> recon; evcap.session -> evcap)."""
-    if module != "evcap" and not module.startswith("evcap."):
-        return None
-    parts = module.split(".")
-    return parts[1] if len(parts) > 1 and parts[1] in FLOORS else "evcap"
-
-
-def violations(floor: str, path: str, modules: set[str]) -> list[str]:
-    allowed = ALLOWED[floor] | {floor, "evcap"}
-    if path == ENTRY:
-        allowed = allowed | {"app"}
-    return sorted(f"{path}: {m}" for m in modules if floor_of(m) not in (None, *allowed))
+PYPROJECT = ROOT / "pyproject.toml"
+# each package of evcap and the folder it lives in (evcap.acquire: acquire/)
+PACKAGE_DIRS: dict[str, str] = tomllib.loads(PYPROJECT.read_text())["tool"]["setuptools"][
+    "package-dir"
+]
+FLOORS = tuple(PACKAGE_DIRS.values())  # the folders of the package: the spine and the floors
+LINT_IMPORTS = Path(sys.executable).with_name("lint-imports")  # the venv's
 
 
 def package_modules(floor: str) -> list[Path]:
@@ -151,39 +126,98 @@ def package_modules(floor: str) -> list[Path]:
     return paths
 
 
-@pytest.mark.parametrize("floor", list(ALLOWED))
-def test_each_floor_imports_only_what_the_layout_draws_under_it(floor):
-    bad = []
-    for p in package_modules(floor):
-        rel = str(p.relative_to(ROOT))
-        bad += violations(floor, rel, imported(p.read_text()))
-    assert not bad, f"{floor} reaches where the layout does not let it: {bad}"
+def _own_folder(root: Path, parts: list[str]) -> Path:
+    """ROOT/PARTS as folders of their own (a linked one unfolded into links to its entries), so
+    that what is added there stays out of the repository."""
+    folder = root
+    for part in parts:
+        folder = folder / part
+        if folder.is_symlink():
+            source = folder.resolve()
+            folder.unlink()
+            folder.mkdir()
+            for entry in source.iterdir():
+                if entry.name != "__pycache__":
+                    (folder / entry.name).symlink_to(entry)
+        folder.mkdir(exist_ok=True)
+    return folder
 
 
-@pytest.mark.parametrize(
-    "floor, path, module",
-    [
-        # the old violations: the demo and the CLI in the spine, the steps reaching sideways
-        ("evcap", "evcap/demo.py", "evcap.acquire.device"),
-        ("evcap", "evcap/demo.py", "evcap.recon.reconstruct"),
-        ("evcap", "evcap/demo.py", "evcap.calib.calibrate"),
-        ("evcap", "evcap/demo.py", "evcap.poses.estimate"),
-        ("evcap", "evcap/demo.py", "evcap.report.html"),
-        ("evcap", "evcap/demo.py", "evcap.sim.truth"),
-        ("evcap", "evcap/cli.py", "evcap.recon.config"),
-        ("evcap", "evcap/cli.py", "evcap.batch.steps"),
-        ("evcap", "evcap/cli.py", "evcap.tui"),
-        ("recon", "recon/x.py", "evcap.sim.render"),
-        ("report", "report/x.py", "evcap.recon.export"),
-        ("acquire", "acquire/x.py", "evcap.tui"),
-        ("tui", "tui/x.py", "evcap.app.cli"),
-        ("sim", "sim/x.py", "evcap.recon.scene.gaussians"),
-        ("batch", "batch/x.py", "evcap.tui"),
+def installed_layout(root: Path, planted: dict[str, str] | None = None) -> None:
+    """evcap laid out under ROOT as pip installs it, in links to the repository's files: each
+    folder where package-dir puts it. (import-linter finds a package by its folder, and the
+    repository's evcap/ holds the spine alone: `lint-imports` run there sees no floor.)
+    ``planted``: modules (by name) and their source, written beside the links."""
+    for package, folder in sorted(PACKAGE_DIRS.items()):  # a package before its children
+        *parents, name = package.split(".")
+        (_own_folder(root, parents) / name).symlink_to(ROOT / folder, target_is_directory=True)
+    for module, source in (planted or {}).items():
+        *parents, name = module.split(".")
+        (_own_folder(root, parents) / f"{name}.py").write_text(source)
+
+
+def lint_imports(planted: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    """`lint-imports` on pyproject.toml's contracts, over the installed layout (in a temporary
+    folder, removed whatever happens), with the ``planted`` modules."""
+    with tempfile.TemporaryDirectory() as tmp:
+        installed_layout(Path(tmp), planted)
+        return subprocess.run(
+            [LINT_IMPORTS, "--no-cache", "--no-logo", PYPROJECT],
+            cwd=tmp,  # lint-imports looks for the package here first
+            capture_output=True,
+            text=True,
+            env={**os.environ, "COLUMNS": "200"},  # its report's lines unbroken
+        )
+
+
+def test_the_code_keeps_the_layering_contracts():
+    """The spine under the steps, the steps apart (the monitor and the simulator on the driver),
+    the pipeline over them, the batch and the application on top; acquire and tui without
+    torch. pyproject.toml's [tool.importlinter] says each contract and why."""
+    r = lint_imports()
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "0 broken" in r.stdout
+
+
+# an import each contract forbids, by the package it is planted in; the first ones are the
+# violations the layout once had: the demo and the CLI in the spine, the steps reaching sideways
+PLANTED = {
+    "evcap.records": [
+        "evcap.acquire.device",
+        "evcap.recon.reconstruct",
+        "evcap.calib.calibrate",
+        "evcap.poses.estimate",
+        "evcap.report.html",
+        "evcap.sim.truth",
+        "evcap.recon.config",
+        "evcap.batch.steps",
+        "evcap.tui",
+        "evcap.pipeline",
     ],
-)
-def test_the_rules_catch_each_old_violation(floor, path, module):
-    assert violations(floor, path, {module})
-    assert not violations(floor, path, {"evcap.session", "evcap.records.poses", "numpy"})
+    "evcap.recon": ["evcap.sim.render"],
+    "evcap.report": ["evcap.recon.export"],
+    "evcap.acquire": ["evcap.tui", "torch", "pycolmap"],
+    "evcap.tui": ["evcap.app.cli", "torch"],
+    "evcap.sim": ["evcap.recon.scene.gaussians"],
+    "evcap.calib": ["evcap.acquire.device", "evcap.poses.estimate"],
+    "evcap.batch": ["evcap.tui", "evcap.app.cli"],
+    "evcap.pipeline": ["evcap.batch.run", "evcap.app.demo", "evcap.tui"],
+}
+PROBE = "_layering_probe"
+
+
+def test_the_contracts_catch_each_forbidden_import():
+    modules = {f"{p}.{PROBE}": "".join(f"import {m}\n" for m in ms) for p, ms in PLANTED.items()}
+    r = lint_imports(modules)
+    report = r.stdout + r.stderr
+    assert r.returncode != 0, report
+    missed = [
+        f"{p} -> {m}"
+        for p, ms in PLANTED.items()
+        for line, m in enumerate(ms, 1)
+        if f"{p}.{PROBE} -> {m} (l.{line})" not in report
+    ]
+    assert not missed, f"the contracts let these through: {missed}\n{report}"
 
 
 # the files of a reconstruction folder: named by evcap/records/reconstruction_folder.py alone
@@ -219,7 +253,7 @@ def out_file_names(source: str) -> list[tuple[int, str]]:
 
 @pytest.mark.parametrize(
     "path",
-    [p for f in (*ALLOWED, "bench") for p in package_modules(f) if p != FOLDER_RECORD],
+    [p for f in (*FLOORS, "bench") for p in package_modules(f) if p != FOLDER_RECORD],
     ids=lambda p: str(p.relative_to(ROOT)),
 )
 def test_only_the_folder_record_names_the_files_of_a_reconstruction(path):
@@ -273,7 +307,7 @@ RESULT_RECORD = ROOT / "evcap" / "records" / "result.py"
 
 @pytest.mark.parametrize(
     "path",
-    [p for f in ALLOWED for p in package_modules(f) if p != RESULT_RECORD],
+    [p for f in FLOORS for p in package_modules(f) if p != RESULT_RECORD],
     ids=lambda p: str(p.relative_to(ROOT)),
 )
 def test_the_figures_a_user_is_shown_are_listed_once(path):
@@ -286,3 +320,15 @@ def test_the_figure_rule_catches_a_list_of_its_own():
     assert figure_lists('FIGURES = ("object_psnr_gain", "normal_mae_deg", "depth_rel_err")')
     labels = '{"object_psnr_gain": "object", "normal_mae_deg": "normals", "depth_rel_err": "depth"}'
     assert figure_lists(labels)
+
+
+def test_a_module_of_evcap_on_no_floor_is_caught():
+    """A new module of the spine is placed on its floor in pyproject.toml's layers."""
+    r = lint_imports({f"evcap.{PROBE}": "import evcap.session\n"})
+    assert r.returncode != 0 and f"- evcap.{PROBE}" in r.stdout, r.stdout + r.stderr
+
+
+if __name__ == "__main__":  # `.venv/bin/python tests/test_boundaries.py`: the contracts' report
+    r = lint_imports()
+    print(r.stdout + r.stderr)
+    sys.exit(r.returncode)

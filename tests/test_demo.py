@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import importlib.util
 import json
 import os
@@ -17,9 +16,9 @@ import pytest
 import torch
 
 from evcap.app import demo
-from evcap.app.pipeline import PipelineInterrupted
 from evcap.errors import InputError, OutputExistsError
-from evcap.recon import config
+from evcap.pipeline import PipelineInterrupted
+from evcap.recon.options import ReconstructOptions
 
 ROOT = Path(__file__).resolve().parents[1]
 SHORT = 150  # stage I's steps in the test of the demo's mechanics (the demo's own: 550)
@@ -36,24 +35,25 @@ def ctrl_c_in_stage_two(description: str):
     yield update
 
 
-def test_demo_runs_resumes_and_writes_the_report(tmp_path, monkeypatch):
+def test_demo_runs_resumes_and_writes_the_report(tmp_path):
     """Every step, Ctrl-C in stage II, the resume and the report, with a short stage I (the
     demo as shipped, and what it recovers: test_the_demo_recovers_the_sphere, marked slow)."""
-    short = dataclasses.replace(config.PRESETS["small"], iterations=SHORT)
-    monkeypatch.setitem(config.PRESETS, "small", short)
+    short = ReconstructOptions(preset="small", settings={"stage1.iterations": SHORT})
     out = tmp_path / "demo"
     lines: list[str] = []
     with pytest.raises(PipelineInterrupted, match="reconstruct"):
-        demo.run_demo(out, say=lines.append, progress=ctrl_c_in_stage_two)
+        demo.run_demo(out, short, say=lines.append, progress=ctrl_c_in_stage_two)
     state = json.loads((out / "pipeline.json").read_text())
     steps = demo.demo_pipeline(out).names()
     at = steps.index("reconstruct")
     assert list(state["done"]) == steps[:at]
-    assert state["settings"]["preset"] == "small"
+    assert state["settings"]["reconstruct"]["preset"] == "small"
     assert "compiled in the background" in state["done"]["the compiled kernels"]["summary"]
 
+    with pytest.raises(InputError, match="stage1.iterations 150"):  # the options it was made with
+        demo.run_demo(out, say=lambda line: None)
     lines.clear()
-    report = demo.run_demo(out, say=lines.append)
+    report = demo.run_demo(out, short, say=lines.append)
     assert sum("done before" in line for line in lines) == at
     assert any("stage II: going on from step 25 of 60" in line for line in lines)
     assert not any("stage I: going on" in line for line in lines)  # stage I was whole
@@ -79,7 +79,7 @@ def test_demo_runs_resumes_and_writes_the_report(tmp_path, monkeypatch):
     assert "after one gain per color channel" in readme_demo().paragraph(readme_demo().facts(out))
 
     lines.clear()
-    demo.run_demo(out, say=lines.append)
+    demo.run_demo(out, short, say=lines.append)
     assert sum("done before" in line for line in lines) == len(steps)
 
 
@@ -159,7 +159,7 @@ def test_demo_refuses_what_it_cannot_use(tmp_path):
     with pytest.raises(InputError, match="missing"):
         demo.run_demo(tmp_path / "a", fixtures=tmp_path)
     with pytest.raises(InputError, match="preset"):
-        demo.run_demo(tmp_path / "a", preset="paper")
+        demo.run_demo(tmp_path / "a", ReconstructOptions(preset="paper"))
     busy = tmp_path / "busy"
     busy.mkdir()
     (busy / "thesis.tex").write_text("keep me")
@@ -173,7 +173,7 @@ def test_demo_refuses_what_it_cannot_use(tmp_path):
     held = {"preset": "fast", "device": "cpu", "seed": 0, "board": None, "relight": None}
     (made / "pipeline.json").write_text(json.dumps({"settings": held, "done": {}}))
     with pytest.raises(InputError, match="--preset fast.*--force"):
-        demo.run_demo(made, preset="small")
+        demo.run_demo(made, demo.SMALL)
     (made / "pipeline.json").write_text("{")
     with pytest.raises(InputError, match="damaged.*--force"):
         demo.run_demo(made)
@@ -195,3 +195,20 @@ def test_the_readmes_demo_figures_are_those_the_demo_wrote():
     script = readme_demo()
     facts = json.loads(script.FACTS.read_text())
     assert script.section(script.README.read_text()) == script.paragraph(facts)
+
+
+def test_the_command_lines_settings_reach_the_demos_reconstruction(tmp_path, monkeypatch):
+    """`evcap demo --set ... --iterations ...`: the demo's pipeline is given them in its
+    options record (test_demo_runs_resumes_and_writes_the_report follows such a record to stage
+    I's steps); a misnamed one is refused before the demo starts."""
+    from evcap.app.cli import main
+
+    given = []
+    monkeypatch.setattr(demo, "run_demo", lambda out, options, **kw: given.append(options))
+    argv = ["demo", "-o", str(tmp_path), "--set", "stage1.densify.every=25", "--iterations", "80"]
+    assert main([*argv, "--backend", "torch"]) == 0
+    assert given[0].preset == "small" and given[0].backend == "torch"
+    assert given[0].settings_dict() == {"stage1.densify.every": 25, "stage1.iterations": 80}
+    resolved = given[0].resolved().stage1
+    assert (resolved.densify.every, resolved.iterations) == (25, 80)
+    assert main([*argv, "--set", "stage1.every=25"]) == 2 and len(given) == 1

@@ -5,7 +5,8 @@ import json
 
 import pytest
 
-from evcap.app.pipeline import (
+from evcap.errors import InputError
+from evcap.pipeline import (
     Pipeline,
     PipelineInterrupted,
     Settings,
@@ -13,7 +14,7 @@ from evcap.app.pipeline import (
     StepResult,
     Workspace,
 )
-from evcap.errors import InputError
+from evcap.recon.options import ReconstructOptions
 
 
 def pipeline(root, runs: list[str], settings=None, fail: str = "", stop: str = ""):
@@ -41,7 +42,7 @@ def test_a_rerun_skips_what_is_done_and_redoes_what_follows_a_step_run_again(tmp
     first = pipeline(tmp_path, runs).run()
     assert runs == ["a", "b", "c"] and [r.status for r in first] == ["done"] * 3
     state = json.loads((tmp_path / "pipeline.json").read_text())
-    assert list(state["done"]) == ["a", "b", "c"] and state["settings"]["preset"] == "fast"
+    assert list(state["done"]) == ["a", "b", "c"] and state["settings"]["reconstruct"]["preset"] == "fast"
     assert state["done"]["b"]["figures"] == {"object_psnr_gain": 20.0}
 
     runs.clear()
@@ -67,7 +68,7 @@ def test_a_step_run_alone_unmarks_those_after_it(tmp_path):
 def test_other_settings_and_a_damaged_state_are_refused(tmp_path):
     pipeline(tmp_path, []).run()
     with pytest.raises(InputError, match="--preset fast.*start it over"):
-        pipeline(tmp_path, [], Settings(preset="tiny")).run()
+        pipeline(tmp_path, [], Settings(ReconstructOptions(preset="tiny"))).run()
     assert pipeline(tmp_path, [], Settings(cpus=2)).run()[0].status == "done before"
     (tmp_path / "pipeline.json").write_text("{")
     with pytest.raises(InputError, match="damaged; start it over"):

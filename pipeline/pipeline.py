@@ -1,6 +1,6 @@
-"""One recording's way through the steps, as `evcap demo` and `evcap batch` run it: a workspace
-(the session, its reconstruction folder, the report), the steps (calibrate, poses, reconstruct,
-report), one state file, and one rule for what a rerun redoes.
+"""One recording's way through the steps, as `evcap demo` and `evcap batch` run it: the steps of
+a workspace (calibrate, poses, reconstruct, report) in order, one state file, and one rule for
+what a rerun redoes.
 
 Each step that ends is marked in the workspace's state file with its time, what it made and its
 figures. A marked step whose outputs are there is not run again; a step that runs again unmarks
@@ -10,112 +10,37 @@ settings the workspace was made with; another run with other settings is refused
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import re
 import shutil
 import time
 import traceback
-from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal, get_args
+from typing import Literal, get_args
 
 from evcap.atomic_write import atomic_path, write_text_atomic
 from evcap.errors import InputError
-from evcap.recon.config import Device, Preset
-
-if TYPE_CHECKING:  # the records (numpy, h5py) wait for a step: `evcap --help` stays quick
-    from evcap.records import ReconstructionFolder
+from evcap.pipeline import steps as work  # each step's work, wired once
+from evcap.pipeline.steps import Progress, no_progress
+from evcap.pipeline.workspace import Settings, Workspace
 
 Step = Literal["calibrate", "poses", "reconstruct", "report"]
 STEPS: tuple[Step, ...] = get_args(Step)
 Status = Literal["done", "done before", "failed", "not run", "stopped"]
-STATE = "pipeline.json"
-# how a user names the held settings (a batch's board is its manifest's)
-OPTIONS = {"preset": "--preset", "device": "--device", "seed": "--seed", "relight": "--relight"}
+# how a user names the held options (a batch's board is its manifest's)
+FLAGS = {"preset": "--preset", "device": "--device", "seed": "--seed", "relight": "--relight"}
+FLAGS |= {"backend": "--backend", "ablate": "--without", "stage": "--stage"}
 
 # what a step's work returns: its one-line summary (None: it was stopped and kept what it had),
 # or the summary and its figures
 Made = str | None | tuple[str | None, dict[str, float]]
-# a description -> a context manager that gives update(done, total, status)
-Progress = Callable[[str], contextlib.AbstractContextManager[Callable[..., None]]]
 
 
 class PipelineInterrupted(KeyboardInterrupt):
     """A step was stopped (Ctrl-C); what the steps before it made is kept."""
-
-
-@dataclass(frozen=True)
-class Settings:
-    """What the steps are run with; all but ``cpus`` are held in the state, and a workspace is
-    only gone on with under the same."""
-
-    preset: Preset = "fast"  # the reconstruction's (recon.config)
-    device: Device = "cpu"
-    seed: int = 0
-    board: str | None = None  # the ChArUco board, when the calibration is measured (calib)
-    # a new light (an image) the reconstruction's views are also lit by; relative to the
-    # workspace's folder unless absolute
-    relight: str | None = None
-    cpus: int | None = None  # threads each step may use (None: as the libraries choose)
-
-    def held(self) -> dict:
-        return {k: v for k, v in asdict(self).items() if k != "cpus"}
-
-
-@dataclass(frozen=True)
-class Workspace:
-    """A recording's folder: ROOT/SESSION (the session the steps write to: a copy of ``source``
-    when one is given), ROOT/reconstruction/, ROOT/report.html, and the state file.
-    ``calibration``: the recording whose calibration the calibrate step applies (measured
-    first when it holds none); the session itself when it is its own."""
-
-    root: Path
-    session_name: str = "session.h5"
-    source: Path | None = None
-    calibration: Path | None = None
-
-    @property
-    def session(self) -> Path:
-        return self.root / self.session_name
-
-    @property
-    def reconstruction(self) -> ReconstructionFolder:
-        from evcap.records import ReconstructionFolder
-
-        return ReconstructionFolder(self.root / "reconstruction")
-
-    @property
-    def report(self) -> Path:
-        """The reconstruction's report, copied beside the session."""
-        return self.root / self.reconstruction.report.name
-
-    @property
-    def state(self) -> Path:
-        return self.root / STATE
-
-    def holds(self, record: Literal["calibration", "poses"]) -> bool:
-        """The session is there and holds that record's group."""
-        from evcap.records import Calibration, Poses
-        from evcap.session import Session
-
-        if not self.session.exists():
-            return False
-        with Session.open(self.session, validate=False) as s:
-            return (Calibration if record == "calibration" else Poses).present(s)
-
-    def copy_source(self) -> None:
-        """The source recording, checked as a session (a corrupt one fails here, named),
-        copied to the session once; the copy takes its name only when it is whole."""
-        from evcap.session import Session
-
-        if self.source is None or self.session.exists():
-            return
-        Session.open(self.source).close()
-        with atomic_path(self.session) as partial:
-            shutil.copyfile(self.source, partial)
 
 
 @dataclass
@@ -148,14 +73,15 @@ class Pipeline:
     def __init__(
         self,
         workspace: Workspace,
-        settings: Settings = Settings(),
+        settings: Settings | None = None,
         *,
         say: Callable[[str], None] = lambda line: None,
         progress: Progress | None = None,
         hint: str = "delete it to start over",
     ) -> None:
-        self.workspace, self.settings, self.say, self.hint = workspace, settings, say, hint
-        self.progress = progress or _no_progress
+        self.workspace, self.say, self.hint = workspace, say, hint
+        self.settings = settings or Settings()
+        self.progress = progress or no_progress
         self.steps: list[StepDefinition] = [
             StepDefinition("calibrate", self._calibrate, lambda: workspace.holds("calibration")),
             StepDefinition("poses", self._poses, lambda: workspace.holds("poses")),
@@ -254,9 +180,11 @@ class Pipeline:
         except (ValueError, KeyError, TypeError):
             raise InputError(f"{path} is damaged; {self.hint}") from None
         if held != self.settings.held():
-            now = self.settings.held()
+            then, now = _by_name(held), _by_name(self.settings.held())
             other = ", ".join(
-                f"{OPTIONS.get(k, k)} {v}" for k, v in held.items() if v != now.get(k)
+                f"{k} {then.get(k, 'not given')}"
+                for k in dict.fromkeys([*then, *now])
+                if then.get(k) != now.get(k)
             )
             raise InputError(
                 f"{self.workspace.root} holds a run made with {other}; choose another output "
@@ -273,8 +201,7 @@ class Pipeline:
     def _calibrate(self) -> str:
         """Measure the calibration recording's calibration (unless it holds one) and write it
         to the session."""
-        from evcap.calib.board import DEFAULT_BOARD, parse_board
-        from evcap.calib.calibrate import calibrate, write_calibration
+        from evcap.calib.board import parse_board
         from evcap.records import Calibration
         from evcap.session import Session
 
@@ -285,10 +212,10 @@ class Pipeline:
         with Session.open(ws.calibration) as s:
             kept = Calibration.read(s) if Calibration.present(s) else None
         if kept is None:
-            board = parse_board(self.settings.board) if self.settings.board else DEFAULT_BOARD
-            with self.progress("calibrating") as update:
-                cal = calibrate(ws.calibration, board=board, progress=update)
-            write_calibration(list(dict.fromkeys([ws.calibration, ws.session])), cal)
+            board = parse_board(self.settings.board) if self.settings.board else None
+            cal = work.calibrate_step(
+                ws.calibration, board=board, also=[ws.session], progress=self.progress
+            )
             return cal.summary().replace("\n", "; ")
         if ws.calibration == ws.session:
             return f"{(ws.source or ws.session).name}'s own /calibration, as it is"
@@ -303,34 +230,25 @@ class Pipeline:
         return f"the calibration of {ws.calibration.name} applied"
 
     def _poses(self) -> str:
-        from evcap.poses.estimate import estimate_poses, write_poses
-
         self.workspace.copy_source()
-        with self.progress("poses") as update:
-            result = estimate_poses(
-                self.workspace.session, threads=self.settings.cpus or 1, progress=update
-            )
-        write_poses(self.workspace.session, result)
+        result = work.poses_step(
+            self.workspace.session, threads=self.settings.cpus or 1, progress=self.progress
+        )
         return result.summary()
 
     def _reconstruct(self) -> tuple[str | None, dict[str, float]]:
-        from evcap.recon.reconstruct import reconstruct
         from evcap.records import Poses
 
         ws, settings = self.workspace, self.settings
         ws.copy_source()
-        with self.progress(f"reconstructing ({settings.preset})") as update:
-            m = reconstruct(
-                ws.session,
-                ws.reconstruction.root,
-                preset=settings.preset,
-                device=settings.device,
-                seed=settings.seed,
-                relight=ws.root / settings.relight if settings.relight else None,
-                overwrite=True,
-                say=self.say,
-                progress=update,
-            )
+        # a rerun goes on where the state fits, else starts over (the state file says what
+        # is done)
+        options = replace(settings.reconstruct, resume="go on or start over")
+        if options.relight is not None:
+            options = replace(options, relight=str(ws.root / options.relight))
+        m = work.reconstruct_step(
+            ws.session, ws.reconstruction.root, options, say=self.say, progress=self.progress
+        )
         if m.interrupted:  # its state is saved: the next run goes on from it
             return None, {}
         refined = ""
@@ -347,12 +265,18 @@ class Pipeline:
         return summary, shown
 
     def _report(self) -> str:
-        from evcap.report.html import write_report
-
-        page = write_report(self.workspace.reconstruction.root, self.workspace.session)
+        page = work.report_step(self.workspace.reconstruction.root, self.workspace.session)
         with atomic_path(self.workspace.report) as partial:
             shutil.copyfile(page, partial)
         return f"{self.workspace.report} ({page.stat().st_size / 1e6:.1f} MB, self-contained)"
+
+
+def _by_name(held: dict) -> dict[str, object]:
+    """Held settings by the names a user gives them (--preset, stage1.iterations, board)."""
+    options = dict(held.get("reconstruct", {}))
+    out: dict[str, object] = {FLAGS.get(k, k): v for k, v in options.items() if k != "settings"}
+    out |= options.get("settings", {})
+    return out | {k: v for k, v in held.items() if k != "reconstruct"}
 
 
 def figures_line(figures: dict[str, float]) -> str:
@@ -370,11 +294,6 @@ def figures_line(figures: dict[str, float]) -> str:
             shown = f"{value:.3g}{' ' + unit if unit else ''}"
         parts.append(f"{name}: {shown}")
     return "; ".join(parts)
-
-
-@contextlib.contextmanager
-def _no_progress(description: str) -> Iterator[Callable[..., None]]:
-    yield lambda *args: None
 
 
 def use_threads(cpus: int) -> None:
