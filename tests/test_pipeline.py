@@ -42,7 +42,8 @@ def test_a_rerun_skips_what_is_done_and_redoes_what_follows_a_step_run_again(tmp
     first = pipeline(tmp_path, runs).run()
     assert runs == ["a", "b", "c"] and [r.status for r in first] == ["done"] * 3
     state = json.loads((tmp_path / "pipeline.json").read_text())
-    assert list(state["done"]) == ["a", "b", "c"] and state["settings"]["reconstruct"]["preset"] == "fast"
+    assert list(state["done"]) == ["a", "b", "c"]
+    assert state["settings"]["reconstruct"]["preset"] == "fast"
     assert state["done"]["b"]["figures"] == {"object_psnr_gain": 20.0}
 
     runs.clear()
