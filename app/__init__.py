@@ -1,2 +1,3 @@
-"""The application floor: the `evcap` command, the demo and the pipeline they and `evcap batch`
-run, over the steps (acquire, calib, poses, recon, report, sim, tui) and the spine."""
+"""The application floor: the `evcap` command (the single-step commands, `evcap demo`, `evcap
+batch`) and the demo, over the pipeline (evcap.pipeline), the steps (acquire, calib, poses, recon,
+report, sim, tui) and the spine."""
