@@ -11,7 +11,8 @@ from evcap.app.reconstruct_flags import add_reconstruct_arguments, options_from,
 from evcap.errors import InputError
 
 # light: the reconstruction's names and choices, without torch
-from evcap.recon.config import STAGES, MeshConfig
+from evcap.recon.config import STAGES
+from evcap.recon.mesh.config import MeshConfig
 
 
 def _simulate_arguments(p: argparse.ArgumentParser) -> None:

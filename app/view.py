@@ -11,8 +11,8 @@ import numpy as np
 import torch
 
 from evcap.errors import InputError
-from evcap.recon.config import MeshConfig
 from evcap.recon.export import load_checkpoint
+from evcap.recon.mesh.config import MeshConfig
 from evcap.recon.mesh.export import export_mesh, read_glb
 from evcap.recon.scene.optics import SensorOptics
 from evcap.recon.scene.sh import C0

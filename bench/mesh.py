@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from _common import RESULTS, machine, scene_file
 
-from evcap.recon.config import MeshConfig
+from evcap.recon.mesh.config import MeshConfig
 from evcap.recon.mesh.export import MeshAsset, export_mesh, read_glb
 
 PATH_VIEWS = 40  # cameras of the path that decide which of the truth was seen

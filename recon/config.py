@@ -4,7 +4,6 @@ themselves are in recon/presets.py and beside each component."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Literal, get_args
 
 # each checked where it enters (the options, the configs, pick_device, pick_backend) with an
@@ -33,20 +32,3 @@ ABLATION_FLAGS: dict[str, Ablation] = {
     "distillation": "distill",
 }
 
-
-@dataclass(frozen=True)
-class MeshConfig:
-    """How the mesh is made from a reconstruction."""
-
-    voxel: float | None = None  # scene units; None: the surface's extent / voxels_across
-    # (min corner, max corner) of the box kept, scene units; None: all the views see
-    bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
-    voxels_across: int = 192
-    views: int = 60  # views along the camera path, fused and baked
-    render_scale: float = 1.0  # of the sensor's focal length
-    truncation_voxels: float = 4.0
-    min_alpha: float = 0.5  # less opaque pixels see the background: empty space
-    keep_share: float = 0.05  # parts with less of the largest part's area are floaters
-    max_triangles: int = 40_000  # the mesh simplified to this many (about)
-    texture_size: int = 1024
-    depth_tolerance_voxels: float = 3.0  # a texel is what a view sees within this

@@ -27,8 +27,8 @@ import torch
 from evcap.atomic_write import atomic_path
 from evcap.errors import InputError
 from evcap.images import srgb
-from evcap.recon.config import MeshConfig
 from evcap.recon.mesh.bake import View, atlas, bake, sample, texels, texture
+from evcap.recon.mesh.config import MeshConfig
 from evcap.recon.mesh.tsdf import Grid, Tsdf, largest_parts, simplified
 from evcap.records import Poses
 from evcap.records.reconstruction_folder import ReconstructionFolder

@@ -7,7 +7,7 @@ import pytest
 
 from evcap.errors import InputError
 from evcap.images import srgb
-from evcap.recon.config import MeshConfig
+from evcap.recon.mesh.config import MeshConfig
 from evcap.recon.mesh.export import export_mesh, read_glb
 
 RADIUS = 0.6  # tests/conftest.py's sphere, at the origin
