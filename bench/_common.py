@@ -42,6 +42,27 @@ def markdown_table(rows: list[dict], columns: tuple[str, ...]) -> str:
     return "\n".join(lines) + "\n"
 
 
+# the flags the benches share, as the reconstruction's settings (recon/presets.py names them)
+FLAG_SETTINGS = {
+    "iterations": "stage1.iterations",
+    "resolution": "stage1.resolution",
+    "material_iterations": "stage2.iterations",
+}
+STAGE_PARTS = {"radiance": ("stage1",), "material": ("stage2",), "all": ("stage1", "stage2")}
+
+
+def flag_settings(stage: str = "all", **flags: object) -> dict[str, object]:
+    """The settings a bench's flags give over the preset's, by dotted name (iterations=N:
+    {"stage1.iterations": N}; FLAG_SETTINGS), leaving out those not given (None) and those of
+    a stage that ``stage`` does not run (reconstruct() refuses them)."""
+    out = {}
+    for flag, value in flags.items():
+        name = FLAG_SETTINGS[flag]
+        if value is not None and name.split(".")[0] in STAGE_PARTS[stage]:
+            out[name] = value
+    return out
+
+
 def scene_file(scene: str) -> Path:
     """The scene file of ``scene``: one of the simulator's example scenes by name, or a path."""
     return Path(scene) if scene.endswith(".toml") else SCENES / f"{scene}.toml"

@@ -34,10 +34,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _common import RESULTS, machine, scene_file, scene_label, session_of
+from _common import RESULTS, flag_settings, machine, scene_file, scene_label, session_of
 
 import evcap.recon.material.stage as material
 import evcap.recon.radiance.stage as radiance
+from evcap.recon.options import ReconstructOptions
 from evcap.recon.reconstruct import reconstruct
 from evcap.recon.scene.gaussians import Background, Gaussians
 from evcap.records.reconstruction_folder import RENDERS, ReconstructionFolder
@@ -45,19 +46,20 @@ from evcap.sim.lighting import Environment
 from evcap.sim.meshes import build_mesh, sample_surface
 from evcap.sim.scene import load_scene
 
-# name -> reconstruct() settings of stage II, and stage I's own where the variant changes it
-# (it then fits a stage I of its own; the others share one)
+# name -> stage II's terms left out (reconstruct()'s ablate) and settings (dotted names), and
+# stage I's own settings where the variant changes them (it then fits a stage I of its own; the
+# others share one)
 VARIANTS = {
     "full": {},
     # the method's brightness anchor holds both stages
-    "no anchor": {"ablate": ("anchor",), "stage_one": {"anchor_weight": 0.0}},
+    "no anchor": {"ablate": ("anchor",), "stage_one": {"stage1.loss.anchor.weight": 0.0}},
     "no edge TV": {"ablate": ("tv",)},
     "no distillation": {"ablate": ("distill",)},
-    "no normal loss": {"stage_one": {"normal_weight": 0.0}},
+    "no normal loss": {"stage_one": {"stage1.loss.normal.weight": 0.0}},
     # indirect light stands for what the occluders hide: without visibility it goes too
-    "no visibility": {"visibility": "off", "indirect": "off"},
+    "no visibility": {"stage2.visibility": "off", "stage2.indirect": "off"},
     # run only where the full model has it, and so the visibility it goes with
-    "no indirect": {"visibility": "on", "indirect": "off"},
+    "no indirect": {"stage2.visibility": "on", "stage2.indirect": "off"},
 }
 SWITCHES_EFFECT = {"no visibility": "visibility", "no indirect": "indirect"}
 # method.md: the published means and ablations (7 NeRF-Synthetic scenes, its own renderer)
@@ -91,7 +93,11 @@ COLUMNS = (
 
 
 # stage I on the truth's surfaces: every geometry parameter kept, no densification
-TRUTH_GEOMETRY = {"densify_until": 0.0, "background_first": 0.0}
+TRUTH_GEOMETRY = {
+    "stage1.densify.start": 0.0,
+    "stage1.densify.stop": 0.0,
+    "stage1.background.first": 0.0,
+}
 TRUTH_GAUSSIANS = 20_000
 TRUTH_OPACITY = 0.95
 
@@ -112,7 +118,7 @@ def starting_on_truth(scene: str) -> Iterator[None]:
         g = truth_gaussians(scene, config.sh_degree)
         for name in ("means", "log_scales", "quats", "opacity_logits"):
             getattr(g, name).requires_grad_(False)
-        return radiance.RadianceField(g, Background(config.background_size), backend).to(device)
+        return radiance.RadianceField(g, Background(config.background.size), backend).to(device)
 
     radiance.new_field = new_field
     try:
@@ -232,22 +238,21 @@ def main(argv: list[str] | None = None) -> None:
     if args.stage_one is not None and len(args.scenes) != 1:
         parser.error("--stage-one is the stage I of one scene: give one scene")
     rows, stage_one = [], {}
-    forced = {"visibility": "on", "indirect": "on"} if args.effects == "on" else {}
+    forced = {"stage2.visibility": "on", "stage2.indirect": "on"} if args.effects == "on" else {}
     truth = args.geometry == "truth"
+
+    def run_of(stage: str, settings: dict, **more: object) -> ReconstructOptions:
+        """The options of a run of ``stage`` with ``settings``, the steps asked for over them."""
+        steps = {"iterations": args.iterations, "material_iterations": args.material_iterations}
+        settings = {**settings, **flag_settings(stage, **steps)}
+        how = {"preset": args.preset, "device": args.device, "seed": args.seed}
+        return ReconstructOptions(**how, stage=stage, settings=settings, **more)
 
     def fit_stage_one(scene: str, session: Path, out: Path, settings: dict) -> dict:
         started = time.perf_counter()
+        options = run_of("radiance", {**(TRUTH_GEOMETRY if truth else {}), **settings})
         with starting_on_truth(scene) if truth else nullcontext():
-            first = reconstruct(
-                session,
-                out,
-                preset=args.preset,
-                device=args.device,
-                stage="radiance",
-                iterations=args.iterations,
-                seed=args.seed,
-                radiance_settings={**(TRUTH_GEOMETRY if truth else {}), **settings},
-            )
+            first = reconstruct(session, out, options)
         return {**first.figures.measured(), "seconds": time.perf_counter() - started}
 
     with tempfile.TemporaryDirectory() as scratch:
@@ -273,6 +278,7 @@ def main(argv: list[str] | None = None) -> None:
             for name in args.variants:
                 settings = dict(VARIANTS[name])
                 own = settings.pop("stage_one", None)
+                ablate = settings.pop("ablate", ())
                 effect = SWITCHES_EFFECT.get(name)
                 if effect and full_effects is not None and not full_effects[effect]:
                     continue  # the full model left it out already on this scene
@@ -283,18 +289,10 @@ def main(argv: list[str] | None = None) -> None:
                     )
                 else:
                     stage_one[f"{label} {name}"] = fit_stage_one(scene, session, out, own)
+                settings = {**forced, **settings}
+                options = run_of("material", settings, ablate=ablate, resume="go on or start over")
                 with truth_light(scene) if args.light == "truth" else nullcontext():
-                    result = reconstruct(
-                        session,
-                        out,
-                        preset=args.preset,
-                        device=args.device,
-                        stage="material",
-                        material_iterations=args.material_iterations,
-                        seed=args.seed,
-                        overwrite=True,
-                        **{**forced, **settings},
-                    )
+                    result = reconstruct(session, out, options)
                 if name == "full":
                     full_effects = result.effects
                 on = ",".join(k for k, v in result.effects.items() if v)

@@ -17,6 +17,7 @@ from _common import report
 
 from evcap.batch.manifest import read_manifest
 from evcap.batch.run import run_batch
+from evcap.recon.options import ReconstructOptions
 from evcap.sim.scene import load_scene
 from evcap.sim.simulate import simulate
 
@@ -78,7 +79,8 @@ def main(argv: list[str] | None = None) -> None:
         for name, how in runs.items():
             out = root / name.replace(" ", "-").replace(",", "")
             started = time.perf_counter()
-            rows = run_batch(manifest, out, steps=STEPS, preset=args.preset, **how)
+            options = ReconstructOptions(preset=args.preset)
+            rows = run_batch(manifest, out, steps=STEPS, options=options, **how)
             seconds = time.perf_counter() - started
             if any(r.status != "done" for r in rows):
                 raise SystemExit(f"{name}: {[(r.name, r.status, r.error) for r in rows]}")

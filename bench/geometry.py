@@ -5,7 +5,8 @@ error, depth error as a share of the distance) and the time it took.
     .venv/bin/python bench/geometry.py [--scenes single_object multi_object] [--preset fast]
         [--iterations N] [--resolution X] [--seed 5] [--variants base binary ...] [--merge]
 
-A variant is a name and the stage-I settings it changes (VARIANTS); `base` changes nothing.
+A variant is a name and the stage-I settings it changes (VARIANTS, by their dotted names within
+stage I: recon/radiance/config.py); `base` changes nothing.
 --iterations and --resolution screen the variants on a shorter run than the preset's.
 --merge keeps the rows of the previous results that this run does not redo.
 """
@@ -18,37 +19,38 @@ import tempfile
 import time
 from pathlib import Path
 
-from _common import RESULTS, machine, markdown_table, scene_label, session_of
+from _common import RESULTS, flag_settings, machine, markdown_table, scene_label, session_of
 
+from evcap.recon.options import ReconstructOptions
 from evcap.recon.reconstruct import reconstruct
 
 VARIANTS: dict[str, dict] = {
     "base": {},
-    "no spread": {"spread_weight": 0.0},
-    "spread 1": {"spread_weight": 1.0},
-    "spread 30": {"spread_weight": 30.0},
-    "no background first": {"background_first": 0.0},
-    "background first 0.2": {"background_first": 0.2},
-    "no smoothing": {"smooth_weight": 0.0},
-    "smoothing 0.1": {"smooth_weight": 0.1},
-    "smoothing 1": {"smooth_weight": 1.0},
-    "curvature": {"curvature_weight": 1.0},
-    "binary": {"binary_weight": 0.1},
-    "flatten": {"flatten_weight": 0.1},
-    "confine": {"confine": 1.5},
-    "alpha 0.1": {"alpha_weight": 0.1},
-    "no alpha": {"alpha_weight": 0.0},
-    "no background variation": {"background_tv_weight": 0.0},
-    "neither": {"alpha_weight": 0.0, "background_tv_weight": 0.0},
-    "opacity 0.05": {"opacity_reg": 0.05},
-    "init 1000": {"init_gaussians": 1000},
-    "background 256": {"background_size": 256},
-    "normal 0.2": {"normal_weight": 0.2},
-    "normal late": {"normal_from": 0.3},
-    "bound": {"zero_events": "bound"},
-    "silent 0.1": {"silent_weight": 0.1},
-    "quiet tv 1": {"quiet_tv_weight": 1.0},
-    "coarse to fine": {"coarse_until": 0.3, "coarse_resolution": 0.375},
+    "no spread": {"loss.spread.weight": 0.0},
+    "spread 1": {"loss.spread.weight": 1.0},
+    "spread 30": {"loss.spread.weight": 30.0},
+    "no background first": {"background.first": 0.0},
+    "background first 0.2": {"background.first": 0.2},
+    "no smoothing": {"loss.smooth.weight": 0.0},
+    "smoothing 0.1": {"loss.smooth.weight": 0.1},
+    "smoothing 1": {"loss.smooth.weight": 1.0},
+    "curvature": {"loss.curvature.weight": 1.0},
+    "binary": {"loss.binary.weight": 0.1},
+    "flatten": {"loss.flatten.weight": 0.1},
+    "confine": {"densify.confine": 1.5},
+    "alpha 0.1": {"loss.alpha.weight": 0.1},
+    "no alpha": {"loss.alpha.weight": 0.0},
+    "no background variation": {"loss.background_tv.weight": 0.0},
+    "neither": {"loss.alpha.weight": 0.0, "loss.background_tv.weight": 0.0},
+    "opacity 0.05": {"loss.opacity.weight": 0.05},
+    "init 1000": {"init.gaussians": 1000},
+    "background 256": {"background.size": 256},
+    "normal 0.2": {"loss.normal.weight": 0.2},
+    "normal late": {"loss.normal.start": 0.3},
+    "bound": {"event_loss.zero_events": "bound"},
+    "silent 0.1": {"event_loss.silent_weight": 0.1},
+    "quiet tv 1": {"loss.quiet_tv.weight": 1.0},
+    "coarse to fine": {"coarse.until": 0.3, "coarse.resolution": 0.375},
 }
 COLUMNS = (
     "scene",
@@ -68,17 +70,11 @@ COLUMNS = (
 
 
 def run(session: Path, preset: str, seed: int, args: argparse.Namespace, settings: dict) -> dict:
+    named = {f"stage1.{k}": v for k, v in settings.items()}
+    named |= flag_settings("radiance", iterations=args.iterations, resolution=args.resolution)
+    options = ReconstructOptions(preset=preset, stage="radiance", seed=seed, settings=named)
     with tempfile.TemporaryDirectory() as out:
-        result = reconstruct(
-            session,
-            out,
-            preset=preset,
-            seed=seed,
-            stage="radiance",
-            iterations=args.iterations,
-            resolution=args.resolution,
-            radiance_settings=settings,
-        )
+        result = reconstruct(session, out, options)
     return {k: v for k, v in result.to_json().items() if k not in ("history", "training_log")}
 
 

@@ -15,8 +15,9 @@ import time
 from pathlib import Path
 
 import torch
-from _common import report
+from _common import flag_settings, report
 
+from evcap.recon.options import Feedback, ReconstructOptions
 from evcap.recon.reconstruct import reconstruct
 
 FIGURES = (
@@ -60,19 +61,19 @@ def main(argv: list[str] | None = None) -> None:
         with tempfile.TemporaryDirectory() as out:
             seconds = {}
             for stage in ("radiance", "material"):
-                start = time.perf_counter()
-                result = reconstruct(
-                    args.session,
-                    out,
+                settings = flag_settings(
+                    stage, iterations=args.iterations, material_iterations=args.material_iterations
+                )
+                options = ReconstructOptions(
                     preset=args.preset,
                     stage=stage,
                     device=device,
                     backend=backend,
                     seed=args.seed,
-                    iterations=args.iterations,
-                    material_iterations=args.material_iterations,
-                    progress=progress,
+                    settings=settings,
                 )
+                start = time.perf_counter()
+                result = reconstruct(args.session, out, options, Feedback(progress=progress))
                 seconds[stage] = time.perf_counter() - start
             measured = result.figures.measured()
         figures[f"{backend}_stage_1_s"] = seconds["radiance"]

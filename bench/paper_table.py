@@ -7,7 +7,7 @@
 
 Background. The release composites every image over white, as the field's protocol states (EventNeRF
 a constant colour, Robust e-NeRF ``alpha_over_white_bg``): with ``--background white`` (the
-default) both stages hold the backdrop at that known white (RadianceConfig.known_background)
+default) both stages hold the backdrop at that known white (the setting stage1.background.known)
 and the views are scored over it; ``--background learnt`` learns it from the events as
 `evcap reconstruct` does for a real capture (where no view looked, it is free). The table says
 which.
@@ -46,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _common import RESULTS, machine
+from _common import RESULTS, flag_settings, machine
 
 from evcap.images import srgb
 from evcap.recon.evaluate.lpips import Lpips
@@ -60,6 +60,7 @@ from evcap.recon.evaluate.metrics import (
 )
 from evcap.recon.evaluate.views import render_views
 from evcap.recon.export import load_checkpoint, load_material_checkpoint
+from evcap.recon.options import Feedback, ReconstructOptions
 from evcap.recon.reconstruct import pick_device, reconstruct
 from evcap.recon.scene.optics import SensorOptics
 from evcap.records import GroundTruth, ReconstructionFolder, TruthViews
@@ -287,21 +288,19 @@ def run_seed(session: Path, args: argparse.Namespace, seed: int, lpips: Lpips | 
         if done["settings"] == settings:
             print(f"seed {seed}: read from {path}", flush=True)
             return done
-    progress = Progress(f"seed {seed}")
-    result = reconstruct(
-        session,
-        out,
+    overrides: dict[str, object] = {"stage1.background.known": BACKGROUNDS[args.background]}
+    overrides |= flag_settings(
+        iterations=args.iterations, material_iterations=args.material_iterations
+    )
+    options = ReconstructOptions(
         preset=args.preset,
-        seed=seed,
         device=args.device,
         backend=args.backend,
-        iterations=args.iterations,
-        material_iterations=args.material_iterations,
-        radiance_settings={"known_background": BACKGROUNDS[args.background]},
-        overwrite=True,
-        resume=False,
-        progress=progress,
+        seed=seed,
+        settings=overrides,
+        resume="start over",
     )
+    result = reconstruct(session, out, options, Feedback(progress=Progress(f"seed {seed}")))
     started = time.perf_counter()
     figures = score(out, session, args.device, result.backend, lpips, path.with_suffix(".png"))
     run = {

@@ -101,6 +101,7 @@ def reconstruction_difference(
     seed: the held-out views' object figures, the whole image's, and the refined poses'
     errors against the truth (the first seed's keys unsuffixed, the others' with _seedN;
     the object figure's mean over the seeds as _mean)."""
+    from evcap.recon.options import ReconstructOptions
     from evcap.recon.reconstruct import reconstruct
     from evcap.records import GroundTruth, Poses, ReconstructionFolder
     from evcap.session import Session
@@ -115,15 +116,12 @@ def reconstruction_difference(
         tag = "" if seed == seeds[0] else f"_seed{seed}"
         runs = (("true", true_session, "off"), ("estimated", estimated, "off"))
         for name, session, refine in (*runs, ("refined", estimated, "on")):
+            settings = {"stage1.poses.refine": refine}
+            options = ReconstructOptions(
+                preset="small", stage="radiance", seed=seed, settings=settings
+            )
             t0 = time.perf_counter()
-            f = reconstruct(
-                session,
-                work / f"recon_{name}{tag}",
-                preset="small",
-                stage="radiance",
-                refine_poses=refine,
-                seed=seed,
-            ).figures
+            f = reconstruct(session, work / f"recon_{name}{tag}", options).figures
             out[f"recon_{name}_poses_seconds{tag}"] = time.perf_counter() - t0
             for key in (
                 "object_psnr",

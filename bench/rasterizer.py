@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _common import RESULTS, report, scene_label, session_of
+from _common import RESULTS, flag_settings, report, scene_label, session_of
 
 from evcap.recon.export import load_checkpoint
 from evcap.recon.raster.rasterize import Camera, rasterize
@@ -56,6 +56,7 @@ def trained(
 ):
     """The stage-I field of ``scene`` at ``preset`` (fitted once), from its first held-out view
     through the sensor's pinhole scaled to width x height; n of its Gaussians at most."""
+    from evcap.recon.options import ReconstructOptions
     from evcap.recon.reconstruct import reconstruct
 
     session = session_of(scene)
@@ -64,9 +65,13 @@ def trained(
     checkpoint = ReconstructionFolder(out).checkpoint("radiance")
     if not checkpoint.exists():
         print(f"fitting stage I of {scene} at {preset} (once) ...", flush=True)
-        reconstruct(
-            session, out, preset=preset, stage="radiance", iterations=iterations, overwrite=True
+        options = ReconstructOptions(
+            preset=preset,
+            stage="radiance",
+            settings=flag_settings("radiance", iterations=iterations),
+            resume="go on or start over",
         )
+        reconstruct(session, out, options)
     field, _ = load_checkpoint(Path(checkpoint))
     with Session.open(session) as s:
         poses = GroundTruth.read(s).held_out_views().T_world_cam

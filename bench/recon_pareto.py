@@ -23,12 +23,13 @@ import json
 import tempfile
 from pathlib import Path
 
-from _common import RESULTS, machine, markdown_table, scene_label, session_of
+from _common import RESULTS, flag_settings, machine, markdown_table, scene_label, session_of
 
-from evcap.recon import config as cfg
+from evcap.recon.options import ReconstructOptions
+from evcap.recon.presets import PRESETS
 from evcap.recon.reconstruct import reconstruct
 
-FAST = (cfg.PRESETS["fast"].iterations, cfg.PRESETS["fast"].resolution)
+FAST = (PRESETS["fast"].iterations, PRESETS["fast"].resolution)
 LABELS = {"preset": "presets", "seed": "fast, other seeds", "sweep": "fast: iterations, scale"}
 COLUMNS = (
     "scene",
@@ -54,12 +55,15 @@ def is_fast(row: dict) -> bool:
     return row["group"] == "sweep" and (row["iterations"], row["resolution"]) == FAST
 
 
-def run_one(session: Path, preset: str, device: str, **overrides: object) -> dict:
-    """Stage I's result as a row: its figures beside the run's fields (no training log)."""
+def run_one(session: Path, preset: str, device: str, seed: int = 0, **flags: object) -> dict:
+    """Stage I's result as a row: its figures beside the run's fields (no training log);
+    ``flags``: its iterations and resolution (the preset's where not given)."""
+    settings = flag_settings("radiance", **flags)
+    options = ReconstructOptions(
+        preset=preset, stage="radiance", device=device, seed=seed, settings=settings
+    )
     with tempfile.TemporaryDirectory() as out:
-        result = reconstruct(
-            session, out, preset=preset, device=device, stage="radiance", **overrides
-        )
+        result = reconstruct(session, out, options)
     return {k: v for k, v in result.to_json().items() if k != "training_log"}
 
 

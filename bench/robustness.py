@@ -30,8 +30,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from _common import RESULTS, machine, markdown_table, scene_file, scene_label
+from _common import RESULTS, flag_settings, machine, markdown_table, scene_file, scene_label
 
+from evcap.recon.options import ReconstructOptions
 from evcap.recon.reconstruct import reconstruct
 from evcap.records import Calibration, Poses
 from evcap.sim.sensor_profiles import PROFILES, SensorProfile
@@ -54,7 +55,7 @@ class Row:
     calibration: str = "truth"  # "truth", or "nominal": uniform thresholds (below)
     nominal: tuple[float, float] | None = None  # the nominal thresholds (None: the sensor's)
     noise_rates: bool = False  # the calibration's noise rates in the event loss
-    refractory_bound: bool = False  # crowded events' windows a lower bound (config.py)
+    refractory_bound: bool = False  # crowded events' windows a lower bound (events/windows.py)
     noise_filter_ms: float = 0.0  # the background-activity filter's time (0: none)
     pose_noise_deg: float = 0.0
 
@@ -270,25 +271,25 @@ def run_row(scene: str, name: str, args: argparse.Namespace) -> dict:
     session = simulated(scene, row.sensor, args.scale)
     out_folder = path.with_suffix("")  # the run's OUT: its renders, beside the truth's
     shutil.rmtree(out_folder, ignore_errors=True)
+    overrides = {
+        "stage1.event_loss.noise_rates": row.noise_rates,
+        "stage1.windows.refractory_bound": row.refractory_bound,
+        "stage1.windows.noise_filter_ms": row.noise_filter_ms,
+        "stage1.poses.refine": "off",
+    }
+    overrides |= flag_settings(
+        args.stage,
+        iterations=args.iterations,
+        resolution=args.resolution,
+        material_iterations=args.material_iterations,
+    )
+    options = ReconstructOptions(
+        preset=args.preset, stage=args.stage, seed=args.seed, settings=overrides
+    )
     with tempfile.TemporaryDirectory() as tmp:
         used = prepared(session, row, Path(tmp), args.seed)
         started = time.perf_counter()
-        result = reconstruct(
-            used,
-            out_folder,
-            preset=args.preset,
-            seed=args.seed,
-            stage=args.stage,
-            iterations=args.iterations,
-            resolution=args.resolution,
-            material_iterations=args.material_iterations,
-            radiance_settings={
-                "noise_rates": row.noise_rates,
-                "refractory_bound": row.refractory_bound,
-                "noise_filter_ms": row.noise_filter_ms,
-            },
-            refine_poses="off",
-        )
+        result = reconstruct(used, out_folder, options)
         seconds = time.perf_counter() - started
     figures = {k: v for k, v in result.to_json().items() if k not in ("history", "training_log")}
     out = {

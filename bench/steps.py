@@ -133,7 +133,6 @@ def measure(args: argparse.Namespace) -> dict:
     """Steps a second of each stage (and each part's share, where this code can time them)."""
     import torch
 
-    from evcap.recon import config as cfg
     from evcap.recon.material.stage import train_material
     from evcap.recon.radiance.stage import load_training_data, train_radiance
     from evcap.session import Session
@@ -141,8 +140,7 @@ def measure(args: argparse.Namespace) -> dict:
     if args.threads:
         torch.set_num_threads(args.threads)
     timed = "timer" in inspect.signature(train_radiance).parameters
-    config = cfg.preset(args.preset, **_resolution(args))
-    mconfig = cfg.material_preset(args.preset)
+    config, mconfig = _configs(args)
     backend = args.backend or ("cpu" if args.device == "cpu" else "gsplat")
     out: dict = {"stage_1_from": args.start, "stage_1_steps": args.steps}
     with Session.open(args.session) as session:
@@ -202,18 +200,18 @@ def measure_full(args: argparse.Namespace) -> dict:
     """The whole of stage I through reconstruct(): steps a minute and the figures."""
     from evcap.recon.reconstruct import reconstruct
 
+    how = {"preset": args.preset, "stage": "radiance", "device": args.device}
+    how |= {"backend": args.backend, "seed": args.seed}
+    if "options" not in inspect.signature(reconstruct).parameters:
+        run = {**how, **_resolution(args)}  # a baseline from before the options record
+    else:
+        from evcap.recon.options import ReconstructOptions
+
+        named = {f"stage1.{k}": v for k, v in _resolution(args).items()}
+        run = {"options": ReconstructOptions(**how, settings=named)}
     with tempfile.TemporaryDirectory() as folder:
         start = time.perf_counter()
-        result = reconstruct(
-            args.session,
-            folder,
-            preset=args.preset,
-            stage="radiance",
-            device=args.device,
-            backend=args.backend,
-            seed=args.seed,
-            **_resolution(args),
-        )
+        result = reconstruct(args.session, folder, **run)
         seconds = time.perf_counter() - start
     measured = result.figures.measured()
     out = {"stage_1_seconds": seconds, "stage_1_steps_per_min": 60 * result.iterations / seconds}
@@ -227,6 +225,21 @@ def measure_full(args: argparse.Namespace) -> dict:
 def _resolution(args: argparse.Namespace) -> dict:
     """The render scale asked for, over the preset's."""
     return {} if args.resolution is None else {"resolution": args.resolution}
+
+
+def _configs(args: argparse.Namespace) -> tuple:
+    """Both stages' settings: the preset's at the render scale asked for, as the code measured
+    names them (nested, or flat in a baseline from before they were). A module the baseline
+    lacks is not asked for: the installed evcap's would be imported in its place."""
+    from evcap.recon import config as cfg
+
+    if hasattr(cfg, "material_preset"):  # a baseline from before the settings were nested
+        return cfg.preset(args.preset, **_resolution(args)), cfg.material_preset(args.preset)
+    from evcap.recon.presets import preset
+
+    named = {f"stage1.{k}": v for k, v in _resolution(args).items()}
+    settings = preset(args.preset, named)
+    return settings.stage1, settings.stage2
 
 
 def run_baseline(args: argparse.Namespace) -> dict:

@@ -31,4 +31,3 @@ ABLATION_FLAGS: dict[str, Ablation] = {
     "edge-tv": "tv",
     "distillation": "distill",
 }
-

@@ -104,9 +104,9 @@ def test_ablation_shares_a_kept_stage_one(session, monkeypatch, tmp_path):
     calls = []
     original = ablation.reconstruct
 
-    def counted(*args, **kwargs):
-        calls.append(kwargs["stage"])
-        return original(*args, **kwargs)
+    def counted(recording, out, options, *args):
+        calls.append(options.stage)
+        return original(recording, out, options, *args)
 
     monkeypatch.setattr(ablation, "reconstruct", counted)
     ablation.main([*tiny, "--variants", "full", "no edge TV", "--stage-one", str(kept)])

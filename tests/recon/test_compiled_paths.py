@@ -1,30 +1,21 @@
 """The CPU's compiled paths against the PyTorch references they stand in for (what runs on a
 GPU): the surface terms, the cube map lookup, the read at the sensor's pixels, and the event
-table's two searches against a plain count of the events."""
+table's two searches against a plain count of the events (the event loss's compiled pass:
+test_event_loss.py)."""
 
-import dataclasses
 import math
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
 
-from evcap.events import Events
-from evcap.recon import config as cfg
-from evcap.recon.events import windows as event_windows
-from evcap.recon.events._loss_cpu import event_loss_cpu
-from evcap.recon.events.windows import EventWindows, WindowsConfig
+from evcap.recon.events.windows import EventWindows
 from evcap.recon.material.shading import prefiltered
 from evcap.recon.radiance import losses
 from evcap.recon.radiance._surface_terms_cpu import surface_terms_cpu
-from evcap.recon.radiance.stage import event_loss_torch, expected_noise
 from evcap.recon.scene._sample_cpu import Sampler
 from evcap.recon.scene.cube_map import cube_lookup, mip_chain
-from evcap.recon.scene.optics import CHANNEL_WEIGHTS, SensorOptics
-from evcap.records import Calibration
-from evcap.session import SensorInfo, Session, SessionWriter
 
 
 def surface_maps(seed: int = 0) -> list[torch.Tensor]:
@@ -161,19 +152,8 @@ def test_sensor_sampling_matches_grid_sample():
     )
 
 
-def random_events(seed: int, width: int = 9, height: int = 7, frames: int = 23):
-    rng = np.random.default_rng(seed)
-    times = np.arange(frames, dtype=np.int64) * 1000 + 50_000
-    t = np.sort(rng.integers(times[0] - 3000, times[-1] + 3000, 4000))
-    codes = rng.integers(0, 2 * width * height, len(t))
-    # hot spots: many events of one pixel within one frame interval
-    codes[100:400] = 17
-    starts = np.searchsorted(t, times, side="left")
-    return width, height, times, t, codes, starts
-
-
 @pytest.mark.parametrize("seed", [0, 1])
-def test_event_counts_from_the_table_match_a_plain_count(seed):
+def test_event_counts_from_the_table_match_a_plain_count(random_events, seed):
     width, height, times, t, codes, starts = random_events(seed)
     c = torch.full((width * height,), 0.2)
     windows = EventWindows.from_codes(width, height, times, codes, starts, c, c)
@@ -196,127 +176,3 @@ def test_event_counts_from_the_table_match_a_plain_count(seed):
     assert distinct < len(t) and windows.nbytes() == 16 * distinct + 8 + 8 * (
         2 * width * height + 1
     )
-
-
-@pytest.mark.parametrize("zero_events", ["target", "bound"])
-@pytest.mark.parametrize("silent_weight", [None, 0.3])
-@pytest.mark.parametrize("noisy", [False, True])
-@pytest.mark.parametrize("crowded", [False, True])
-def test_event_loss_matches_the_window_by_window_one(zero_events, silent_weight, noisy, crowded):
-    width, height, times, t, codes, starts = random_events(3)
-    g = torch.Generator().manual_seed(4)
-    n = width * height
-    on = 0.15 + 0.1 * torch.rand(n, generator=g)
-    off = 0.15 + 0.1 * torch.rand(n, generator=g)
-    windows = EventWindows.from_codes(width, height, times, codes, starts, on, off)
-    if crowded:  # a third of the events crowded (their counts a table of their own)
-        near = np.random.default_rng(6).random(len(codes)) < 0.3
-        kept = np.searchsorted(np.flatnonzero(near), starts)
-        windows.crowded = EventWindows.from_codes(width, height, times, codes[near], kept, on, off)
-    channel = torch.randint(0, 4, (n,), generator=g)
-    data = SimpleNamespace(
-        windows=windows,
-        channel_weights=CHANNEL_WEIGHTS[channel],
-        mask=torch.rand(n, generator=g) > 0.1,
-    )
-    config = dataclasses.replace(
-        cfg.preset("tiny"), zero_events=zero_events, silent_weight=silent_weight
-    )
-    frames = np.array([2, 9, 9, 20])  # two views at one time: no window between them
-    before = windows.before_frames(frames)
-    near = windows.crowded.before_frames(frames) if crowded else None
-    pairs = [(0, 1), (0, 2), (0, 3), (1, 3), (2, 3)]
-    # radiance about 0.5, some black and some negative (interpolation's undershoot)
-    views = [0.5 + 0.3 * torch.randn(n, 3, generator=g) for _ in frames]
-    views[1][:5] = 0.0
-    views[2][5:8] = -0.01
-    ref = [v.clone().requires_grad_(True) for v in views]
-    fast = [v.clone().requires_grad_(True) for v in views]
-    # expected noise events per window (ON, OFF), as the calibration's rates give them
-    noise = np.random.default_rng(5).uniform(0, 0.8, (len(pairs), 2)) * noisy
-    expected = event_loss_torch(data, config, before, pairs, noise, ref, near)
-    got = event_loss_cpu(
-        fast,
-        data.channel_weights,
-        config.log_eps,
-        before,
-        pairs,
-        noise,
-        on,
-        off,
-        data.mask,
-        zero_events,
-        silent_weight,
-        near,
-    )
-    torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-6)
-    (2.0 * expected).backward()
-    (2.0 * got).backward()
-    for a, b in zip(ref, fast, strict=True):
-        torch.testing.assert_close(b.grad, a.grad, rtol=1e-4, atol=1e-7)
-
-
-def test_expected_noise_follows_the_rates_and_the_window_lengths(tmp_path):
-    """The calibration's background activity (ON) and shot noise (half each polarity), as
-    the reconstruction reads them, times each window's length; nothing unless asked."""
-    path = tmp_path / "s.h5"
-    with SessionWriter(path, SensorInfo("simulated", 8, 6)):
-        pass
-    shape = (6, 8)
-    Calibration(
-        8,
-        6,
-        "ground truth",
-        K=np.array([[10.0, 0, 4], [0, 10, 3], [0, 0, 1]]),
-        threshold_on=np.full(shape, 0.2),
-        threshold_off=np.full(shape, 0.2),
-        background_activity_hz=1.5,
-        shot_noise_hz=1.0,
-    ).write(path)
-    with Session.open(path) as s:
-        optics = SensorOptics.from_session(s)
-    assert (optics.noise_on_hz, optics.noise_off_hz) == (2.0, 0.5)
-    data = SimpleNamespace(
-        windows=SimpleNamespace(frame_times=np.array([0, 1000, 5000, 105_000])), optics=optics
-    )
-    frames, pairs = np.array([0, 2, 3]), [(0, 1), (0, 2), (1, 2)]
-    asked = dataclasses.replace(cfg.preset("tiny"), noise_rates=True)
-    expected = [[0.01, 0.0025], [0.21, 0.0525], [0.2, 0.05]]
-    np.testing.assert_allclose(expected_noise(data, asked, frames, pairs), expected)
-    assert not expected_noise(data, cfg.preset("tiny"), frames, pairs).any()
-
-
-def test_crowded_events_are_those_within_twice_the_refractory_period(tmp_path, monkeypatch):
-    """An event within 2 x the calibration's refractory period of its pixel's previous one
-    (of either polarity) is counted again as crowded; a window with one bounds the change's
-    size from below, in its direction, and no longer asks for it exactly."""
-    path = tmp_path / "s.h5"
-    sensor = SensorInfo("simulated", 8, 6)
-    # pixel (1, 0): events 300 us apart (crowded after the first), then one 5 ms later;
-    # pixel (2, 3): 700 and 1,100 us apart (the first crowded, the second not)
-    x = [1, 2, 1, 1, 2, 2, 1]
-    y = [0, 3, 0, 0, 3, 3, 0]
-    t = [1000, 1500, 1300, 1600, 2200, 3300, 6600]
-    p = [1, 0, 1, 1, 0, 0, 1]
-    order = np.argsort(t, kind="stable")
-    events = Events(*(np.asarray(a)[order] for a in (x, y, t, p)), width=8, height=6)
-    with SessionWriter(path, sensor) as w:
-        w.append_events(events)
-    monkeypatch.setattr(event_windows, "MIN_EVENTS", 0)
-    c = np.full((6, 8), 0.2)
-    optics = SimpleNamespace(threshold_on=c, threshold_off=c, refractory_us=500.0)
-    grid = WindowsConfig(frame_interval_ms=10, max_frames=10, refractory_bound=True)
-    with Session.open(path) as s:
-        windows = EventWindows.from_session(s, optics, 0, 10_000, grid)
-    on, off = windows.crowded.counts(0, 1)
-    assert on[1] == 2 and off[3 * 8 + 2] == 1 and on.sum() + off.sum() == 3
-    measured = torch.tensor([0.6, -0.4, 0.6])
-    predicted = torch.tensor([0.9, -0.1, 0.9])
-    counts = torch.ones(3)
-    flag = torch.tensor([1.0, 1.0, 0.0])
-    c3 = torch.full((3,), 0.2)
-    loss = losses.event_loss(
-        predicted, measured, counts, c3, c3, torch.ones(3, dtype=bool), crowded=flag
-    )
-    # above the first bound: nothing; short of the second by 0.3; the third exact L1 0.3
-    torch.testing.assert_close(loss, torch.tensor(0.2))

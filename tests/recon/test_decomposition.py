@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from evcap.recon.options import ReconstructOptions
 from evcap.recon.radiance import stage as radiance
 from evcap.recon.raster.rasterize import gaussian_normals
 from evcap.recon.reconstruct import reconstruct
@@ -90,19 +91,20 @@ def sunlit_result(tmp_path_factory):
         g = Gaussians.on_surface(points, normals, spacing, config.sh_degree)
         for name in ("means", "log_scales", "quats", "opacity_logits"):
             getattr(g, name).requires_grad_(False)
-        return radiance.RadianceField(g, Background(config.background_size), backend)
+        return radiance.RadianceField(g, Background(config.background.size), backend)
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(radiance, "new_field", on_the_surface)
-        return reconstruct(
-            folder / "s.h5",
-            folder / "recon",
-            preset="tiny",
-            resolution=1.0,
-            iterations=400,
-            material_iterations=200,
-            radiance_settings={"densify_until": 0.0, "background_first": 0.0},
-        )
+        settings = {
+            "stage1.resolution": 1.0,
+            "stage1.iterations": 400,
+            "stage2.iterations": 200,
+            "stage1.densify.start": 0.0,  # no densification (it stops before it starts)
+            "stage1.densify.stop": 0.0,
+            "stage1.background.first": 0.0,
+        }
+        options = ReconstructOptions(preset="tiny", settings=settings)
+        return reconstruct(folder / "s.h5", folder / "recon", options)
 
 
 def test_the_base_color_beats_the_radiance_it_starts_from(sunlit_result):

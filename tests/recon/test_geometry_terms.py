@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from evcap.errors import InputError
-from evcap.recon import config as cfg
+from evcap.recon.presets import preset
 from evcap.recon.radiance.losses import (
     depth_curvature_loss,
     depth_spread_loss,
@@ -63,9 +63,9 @@ def test_transparent_pixels_do_not_count_and_stay_finite():
 
 
 def test_unknown_settings_are_named():
-    with pytest.raises(InputError, match="spread_wieght"):
-        cfg.preset("tiny", spread_wieght=1.0)
-    assert cfg.preset("tiny", spread_weight=10.0).spread_weight == 10.0
+    with pytest.raises(InputError, match="spread.wieght"):
+        preset("tiny", {"stage1.loss.spread.wieght": 1.0})
+    assert preset("tiny", {"stage1.loss.spread.weight": 10.0}).stage1.loss.spread.weight == 10.0
 
 
 def grid(h: int = 12, w: int = 16) -> tuple[torch.Tensor, torch.Tensor]:

@@ -8,12 +8,14 @@ import pytest
 import torch
 
 from evcap.errors import InputError
-from evcap.recon import config as cfg
+from evcap.recon.config import ABLATIONS
 from evcap.recon.material import stage as material
 from evcap.recon.material.shading import fibonacci_directions, shade
 from evcap.recon.material.stage import edge_tv, light_from_image
 from evcap.recon.material.visibility import bake_occlusion, bake_visibility
+from evcap.recon.presets import preset
 from evcap.recon.radiance.stage import load_training_data, new_field
+from evcap.recon.radiance.terms import total_loss
 from evcap.recon.scene.cube_map import cube_directions, cube_lookup, mip_chain
 from evcap.recon.scene.gaussians import Gaussians
 from evcap.session import Session
@@ -226,7 +228,7 @@ def stage_one(tiny_scene, tmp_path_factory):
     scene = tiny_scene(color_filter="RGBG")
     path = tmp_path_factory.mktemp("material") / "s.h5"
     simulate(load_scene(scene), path)
-    config = cfg.preset("tiny", iterations=2)
+    config = preset("tiny", {"stage1.iterations": 2}).stage1
     with Session.open(path) as s:
         data = load_training_data(s, config, "cpu")
     return path, data, config
@@ -239,11 +241,10 @@ def stage_one(tiny_scene, tmp_path_factory):
 def test_hard_cases_stay_finite(stage_one, case, monkeypatch):
     path, data, config = stage_one
     field = new_field(data, config, 0, "cpu", "torch")
-    mconfig = cfg.material_preset("tiny", iterations=3, edge_frames=4)
+    settings = {"stage2.iterations": 3, "stage2.edges.frames": 4}
     if case == "all_effects":
-        mconfig = cfg.material_preset(
-            "tiny", iterations=3, edge_frames=4, visibility="on", indirect="on"
-        )
+        settings |= {"stage2.visibility": "on", "stage2.indirect": "on"}
+    mconfig = preset("tiny", settings).stage2
     if case == "black_environment":
         with torch.no_grad():
             field.background.faces.fill_(-40.0)  # softplus -> ~4e-18: black light
@@ -276,7 +277,7 @@ def test_hard_cases_stay_finite(stage_one, case, monkeypatch):
 def test_stage_two_losses_leave_out_the_ablated_terms(stage_one):
     _, data, config = stage_one
     radiance = new_field(data, config, 0, "cpu", "torch")
-    mconfig = cfg.material_preset("tiny", edge_frames=4)
+    mconfig = preset("tiny", {"stage2.edges.frames": 4}).stage2
     field = material.new_material_field(radiance, data, mconfig)
     frames = np.array([0, 3, 9])
     weights = {int(f): torch.ones(data.grid.height, data.grid.width) for f in frames}
@@ -286,18 +287,20 @@ def test_stage_two_losses_leave_out_the_ablated_terms(stage_one):
         }
 
     def losses(ablate: frozenset) -> tuple[float, dict[str, float]]:
-        total, terms = material._losses(
-            field, data, config, mconfig, frames, targets, weights, ablate
-        )
-        return total.item(), {k: float(v) for k, v in terms.items()}
+        terms = material.stage_two_terms(config, mconfig, ablate)
+        renders = [field.render_view(data.viewmats()[int(f)], data.grid) for f in frames]
+        seen = [data.grid.sample(r.color[..., :3]) for r in renders]
+        inputs = material.StepInputs(data, frames, renders, seen, targets, weights)
+        total = total_loss(terms, inputs, 1, background_alone=False)
+        # each term as the training's log shows it (0: not computed)
+        return total.item(), {k: float(inputs.logged.get(k, 0.0)) for k in material.LOGGED}
 
     total, terms = losses(frozenset())
-    weighted = {"distill": mconfig.distill_weight, "anchor": mconfig.anchor_weight}
-    weighted["tv"] = mconfig.tv_weight
+    weighted = {k: getattr(mconfig.loss, k) for k in ("distill", "anchor", "tv")}
     assert terms["distill"] > 0 and terms["tv"] > 0
     expected = terms["event"] + sum(w * terms[k] for k, w in weighted.items())
     assert total == pytest.approx(expected, rel=1e-5)
-    alone, left = losses(frozenset(cfg.ABLATIONS))
+    alone, left = losses(frozenset(ABLATIONS))
     assert alone == pytest.approx(terms["event"], rel=1e-6)
     assert left == {"event": terms["event"], "distill": 0.0, "anchor": 0.0, "tv": 0.0}
 
@@ -339,7 +342,7 @@ def test_auto_models_the_effects_that_made_the_radiance(stage_one, made_with):
         # stage I's Gaussians: the truth's radiance as their view-independent color
         g.sh_dc[:, 0] = torch.log(torch.expm1(radiance.clamp(min=1e-4))) / C0
     field = RadianceField(g, light, "torch")
-    chosen = material.new_material_field(field, data, cfg.material_preset("tiny"))
+    chosen = material.new_material_field(field, data, preset("tiny").stage2)
     assert set(chosen.start_variation) == {"neither", "visibility+indirect"}
     assert chosen.effects == {"visibility": visibility, "indirect": indirect}
 
@@ -368,6 +371,6 @@ def test_relighting_scales_the_light_from_other_surfaces_with_the_light():
 
 def test_stage_two_settings_are_checked():
     with pytest.raises(InputError, match="normals_form"):
-        cfg.material_preset("fast", normals_form="planes")
+        preset("fast", {"stage2.normals_form": "planes"})
     with pytest.raises(InputError, match="normals_from"):
-        cfg.material_preset("fast", normals_from="depth")
+        preset("fast", {"stage2.normals_from": "depth"})

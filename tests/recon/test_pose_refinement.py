@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from evcap.recon.options import Feedback, ReconstructOptions
 from evcap.recon.radiance.pose_refinement import PoseCorrections, exp_so3
 from evcap.recon.radiance.stage import RadianceField
 from evcap.recon.reconstruct import reconstruct
@@ -130,54 +131,57 @@ def simulated(tiny_scene, tmp_path_factory):
 
 def test_reconstruct_refines_estimated_poses_and_writes_them(simulated, tmp_path):
     """auto refines poses that `evcap poses` estimated: OUT/poses.h5 holds the refined path
-    (its source says so); stage II alone then reads it; --write-poses puts it in the session."""
+    (its source says so); stage II alone then reads it; --write-poses (with stage I, which
+    refines them) puts it in the session."""
     session = shutil.copy(simulated, tmp_path / "s.h5")
     with Session.open(session) as s:
         truth = Poses.read(s)
     truth.replace(source="evcap poses (filter frames, pycolmap)").write(session)
     out = tmp_path / "out"
-    settings = {"iterations": 12, "pose_from": 0.0}
-    result = reconstruct(session, out, preset="tiny", stage="radiance", radiance_settings=settings)
+    settings = {"stage1.iterations": 12, "stage1.poses.start": 0.0}
+    options = ReconstructOptions(preset="tiny", stage="radiance", settings=settings)
+    result = reconstruct(session, out, options)
     refined = Poses.read_file(ReconstructionFolder(out).poses)
     assert refined.source == "evcap reconstruct: refined (evcap poses (filter frames, pycolmap))"
     assert refined.start == truth.start and refined.end == truth.end
     assert 0 < refined.notes["refinement_max_deg"] < 5
     assert np.isfinite(result.figures.object_psnr_gain)
-    material = reconstruct(
-        session, out, preset="tiny", stage="material", material_iterations=2, write_poses=True
-    )
+    options = ReconstructOptions(preset="tiny", stage="material", settings={"stage2.iterations": 2})
+    material = reconstruct(session, out, options)
     assert material.material_iterations == 2
     with Session.open(session) as s:
-        assert Poses.read(s).source == refined.source
-    off = reconstruct(
-        session,
-        tmp_path / "off",
-        preset="tiny",
-        stage="radiance",
-        radiance_settings=settings,
-        refine_poses="off",
+        assert Poses.read(s).source == "evcap poses (filter frames, pycolmap)"  # OUT's alone
+    # --write-poses goes with a run of stage I (with --stage material alone it is refused)
+    written = tmp_path / "written"
+    options = ReconstructOptions(
+        preset="tiny", stage="radiance", settings=settings, write_poses=True
     )
+    reconstruct(session, written, options)
+    refined_again = Poses.read_file(ReconstructionFolder(written).poses)
+    assert refined_again.source == refined.source
+    with Session.open(session) as s:
+        now = Poses.read(s)
+    assert now.source == refined.source
+    np.testing.assert_array_equal(now.T_world_cam, refined_again.T_world_cam)
+    settings["stage1.poses.refine"] = "off"
+    options = ReconstructOptions(preset="tiny", stage="radiance", settings=settings)
+    off = reconstruct(session, tmp_path / "off", options)
     assert off.iterations == 12 and not (ReconstructionFolder(tmp_path / "off").poses).exists()
 
 
 def test_an_interrupted_refinement_goes_on_as_if_it_had_not_stopped(simulated, tmp_path):
     session = simulated
-    run = {
-        "preset": "tiny",
-        "stage": "radiance",
-        "iterations": 40,
-        "radiance_settings": {"pose_from": 0.1},
-        "refine_poses": "on",
-    }
-    whole = reconstruct(session, tmp_path / "whole", **run)
+    settings = {"stage1.iterations": 40, "stage1.poses.start": 0.1, "stage1.poses.refine": "on"}
+    run = ReconstructOptions(preset="tiny", stage="radiance", settings=settings)
+    whole = reconstruct(session, tmp_path / "whole", run)
 
     def ctrl_c_at_step_25(done: int, total: int, status: str = "") -> None:
         if done == 25:
             raise KeyboardInterrupt
 
-    first = reconstruct(session, tmp_path / "cut", **run, progress=ctrl_c_at_step_25)
+    first = reconstruct(session, tmp_path / "cut", run, Feedback(progress=ctrl_c_at_step_25))
     assert first.interrupted and first.iterations == 25
-    again = reconstruct(session, tmp_path / "cut", **run)
+    again = reconstruct(session, tmp_path / "cut", run)
     assert again.iterations == whole.iterations == 40
     expected = Poses.read_file(ReconstructionFolder(tmp_path / "whole").poses)
     got = Poses.read_file(ReconstructionFolder(tmp_path / "cut").poses)

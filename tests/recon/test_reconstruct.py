@@ -15,8 +15,10 @@ import pytest
 import torch
 
 from evcap.errors import InputError
-from evcap.recon import config as cfg
+from evcap.recon.config import PRESET_NAMES
 from evcap.recon.export import read_ply_header
+from evcap.recon.options import ReconstructOptions
+from evcap.recon.presets import preset
 from evcap.recon.radiance.stage import RadianceField, load_training_data, new_field, train_radiance
 from evcap.recon.reconstruct import reconstruct
 from evcap.records import Calibration, GroundTruth, ReconstructionFolder
@@ -65,15 +67,9 @@ def environment(tmp_path_factory):
 @pytest.fixture(scope="module")
 def color_result(color_session, environment, tmp_path_factory):
     out = tmp_path_factory.mktemp("recon")
-    result = reconstruct(
-        color_session,
-        out,
-        preset="tiny",
-        resolution=1.0,
-        iterations=30,
-        material_iterations=8,
-        relight=environment,
-    )
+    settings = {"stage1.resolution": 1.0, "stage1.iterations": 30, "stage2.iterations": 8}
+    options = ReconstructOptions(preset="tiny", settings=settings, relight=str(environment))
+    result = reconstruct(color_session, out, options)
     return out, result
 
 
@@ -167,7 +163,7 @@ def test_writes_every_output(color_result):
     relit = sorted((out / "renders" / "relit").glob("test_*.png"))
     assert len(relit) == len(list((out / "renders").glob("test_*_radiance.png")))
     config = tomllib.loads((out / "config.toml").read_text())
-    assert config["radiance"]["iterations"] == 30 and config["material"]["iterations"] == 8
+    assert config["stage1"]["iterations"] == 30 and config["stage2"]["iterations"] == 8
 
 
 def test_relit_views_follow_the_new_light(color_result):
@@ -183,9 +179,13 @@ def test_material_stage_resumes_from_the_checkpoint(color_session, color_result,
     out, first = color_result
     again = tmp_path / "again"
     shutil.copytree(out, again)
-    result = reconstruct(
-        color_session, again, preset="tiny", stage="material", material_iterations=4, overwrite=True
+    options = ReconstructOptions(
+        preset="tiny",
+        stage="material",
+        settings={"stage2.iterations": 4},
+        resume="go on or start over",
     )
+    result = reconstruct(color_session, again, options)
     assert result.material_iterations == 4
     assert result.gaussians == first.gaussians  # stage I untouched
     assert result.training_log["radiance"] == first.training_log["radiance"]
@@ -196,8 +196,9 @@ def test_material_stage_resumes_from_the_checkpoint(color_session, color_result,
     # beside them, what no decomposition and no relighting reach
     assert np.isfinite(figures.relit_object_psnr_gain_baseline)
     assert np.isfinite(figures.base_color_psnr_gain_baseline)
+    options = ReconstructOptions(preset="tiny", stage="material")
     with pytest.raises(InputError, match="no stage-I checkpoint"):
-        reconstruct(color_session, tmp_path / "empty", preset="tiny", stage="material")
+        reconstruct(color_session, tmp_path / "empty", options)
 
 
 def least_squares_gain(fit_on: np.ndarray, fit_to: np.ndarray) -> np.ndarray:
@@ -229,7 +230,8 @@ def test_the_corrected_figures_are_one_gain_per_channel_over_all_views(
 
     out = tmp_path / "again"
     shutil.copytree(color_result[0], out)
-    reconstruct(color_session, out, preset="tiny", stage="material", overwrite=True)
+    options = ReconstructOptions(preset="tiny", stage="material", resume="go on or start over")
+    reconstruct(color_session, out, options)
     metrics = json.loads((out / "metrics.json").read_text())
     with Session.open(color_session) as s:
         gt = GroundTruth.read(s)
@@ -272,18 +274,12 @@ def test_a_known_background_is_held_in_both_stages_and_kept(color_session, tmp_p
     from evcap.recon.scene.optics import SensorOptics
 
     grey = (0.3, 0.5, 0.7)
-    reconstruct(
-        color_session,
-        tmp_path,
-        preset="tiny",
-        iterations=20,
-        material_iterations=4,
-        radiance_settings={"known_background": grey},
-    )
+    settings = {"stage1.iterations": 20, "stage2.iterations": 4, "stage1.background.known": grey}
+    reconstruct(color_session, tmp_path, ReconstructOptions(preset="tiny", settings=settings))
     folder = ReconstructionFolder(tmp_path)
-    assert folder.settings("radiance")["known_background"] == list(grey)
-    field, settings = load_checkpoint(folder.checkpoint("radiance"))
-    assert tuple(settings["known_background"]) == grey
+    assert folder.settings("stage1")["background"]["known"] == list(grey)
+    field, config = load_checkpoint(folder.checkpoint("radiance"))
+    assert config.background.known == grey
     material = load_material_checkpoint(folder.checkpoint("material"))
     with Session.open(color_session) as s:
         optics = SensorOptics.from_session(s)
@@ -293,8 +289,8 @@ def test_a_known_background_is_held_in_both_stages_and_kept(color_session, tmp_p
         seen = render_views(f, away, optics)
         assert seen["alpha"].max() < 1e-3
         np.testing.assert_allclose(seen["radiance"].reshape(-1, 3).mean(0), grey, atol=1e-3)
-    with pytest.raises(InputError, match="known_background"):
-        cfg.preset("tiny", known_background=(1.0, 0.0, 1.0))
+    with pytest.raises(InputError, match="background.known"):
+        preset("tiny", {"stage1.background.known": (1.0, 0.0, 1.0)})
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
@@ -306,18 +302,16 @@ def test_both_stages_run_on_a_cuda_gpu(color_session, environment, tmp_path, bac
 
         if not _raster_gsplat.available():
             pytest.skip("gsplat is not installed or cannot build its kernels")
-    result = reconstruct(
-        color_session,
-        tmp_path,
+    settings = {"stage1.resolution": 1.0, "stage1.iterations": 30, "stage2.iterations": 8}
+    settings["stage1.densify.every"] = 10
+    options = ReconstructOptions(
         preset="tiny",
         device="cuda",
         backend=backend,
-        resolution=1.0,
-        iterations=30,
-        material_iterations=8,
-        radiance_settings={"densify_every": 10},
-        relight=environment,
+        settings=settings,
+        relight=str(environment),
     )
+    result = reconstruct(color_session, tmp_path, options)
     assert (result.device, result.backend) == ("cuda", backend)
     assert read_ply_header(tmp_path / "gaussians.ply")[0] == result.gaussians
     assert np.isfinite(result.figures.object_psnr_gain)
@@ -348,7 +342,9 @@ def test_ply_is_the_common_3dgs_layout(color_result):
 
 
 def test_learns_the_scene_from_events_alone(color_session, tmp_path):
-    result = reconstruct(color_session, tmp_path, preset="tiny", resolution=1.0, stage="radiance")
+    settings = {"stage1.resolution": 1.0}
+    options = ReconstructOptions(preset="tiny", stage="radiance", settings=settings)
+    result = reconstruct(color_session, tmp_path, options)
     # the best constant image scores 16.1 dB after color correction on this scene; this run
     # scored 19.0 dB (depth error 0.197, at about 2.2 units) when it was written
     assert result.figures.render_psnr_gain > 18
@@ -385,13 +381,14 @@ def test_stage_two_checkpoint_reads_back_the_field_that_was_scored(color_session
 def test_refuses_to_overwrite(color_session, color_result):
     out, _ = color_result
     with pytest.raises(InputError, match="--force"):
-        reconstruct(color_session, out, preset="tiny")
+        reconstruct(color_session, out, ReconstructOptions(preset="tiny"))
 
 
 def test_mono_session(tiny_scene, tmp_path_factory):
     session = simulated(tiny_scene, tmp_path_factory, "MONO")
     out = tmp_path_factory.mktemp("mono")
-    result = reconstruct(session, out, preset="tiny", iterations=40, material_iterations=5)
+    settings = {"stage1.iterations": 40, "stage2.iterations": 5}
+    result = reconstruct(session, out, ReconstructOptions(preset="tiny", settings=settings))
     assert result.iterations == 40 and np.isfinite(result.figures.render_psnr_gain)
     assert np.isfinite(result.figures.base_color_psnr_gain)
 
@@ -415,7 +412,7 @@ def test_missing_poses_is_a_clear_error(color_session, tmp_path):
     with h5py.File(session, "a") as f:
         del f["poses"]
     with pytest.raises(InputError, match="no camera poses.*evcap poses"):
-        reconstruct(session, tmp_path / "out", preset="tiny")
+        reconstruct(session, tmp_path / "out", ReconstructOptions(preset="tiny"))
 
 
 @pytest.mark.parametrize("n", [0, 100])
@@ -461,8 +458,8 @@ def test_cli_writes_a_reconstruction(color_session, tmp_path):
     assert r.returncode == 0, r.stderr
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["iterations"] == 5 and metrics["seed"] == 2
-    radiance = tomllib.loads((out / "config.toml").read_text())["radiance"]
-    assert radiance["refractory_bound"] and radiance["noise_filter_ms"] == 5
+    windows = tomllib.loads((out / "config.toml").read_text())["stage1"]["windows"]
+    assert windows["refractory_bound"] and windows["noise_filter_ms"] == 5
     assert not metrics["effects"]["tv"] and not metrics["effects"]["anchor"]
     assert metrics["effects"]["distill"]
     assert "render_psnr_gain" in r.stdout and "base_color_psnr_gain" in r.stdout
@@ -481,36 +478,30 @@ def test_the_papers_run_completes_both_stages(color_session, tmp_path):
     assert metrics["material_iterations"] == 10 and not metrics["interrupted"]
     assert metrics["gaussians"] > 50_000  # the paper's start, not pruned away in 20 steps
     config = tomllib.loads((out / "config.toml").read_text())
-    assert config["radiance"]["sh_degree"] == 3 and config["material"]["edge_frames"] == 200
+    assert config["stage1"]["sh_degree"] == 3 and config["stage2"]["edges"]["frames"] == 200
     assert np.isfinite(metrics["base_color_psnr_gain"])
 
 
 def test_stage_one_settings_over_the_preset(color_session, tmp_path):
-    settings = {"zero_events": "bound", "spread_weight": 10.0, "iterations": 9}
-    reconstruct(
-        color_session,
-        tmp_path,
-        preset="tiny",
-        stage="radiance",
-        iterations=2,  # a named argument goes over the settings
-        radiance_settings=settings,
+    settings = (
+        ("stage1.event_loss.zero_events", "bound"),
+        ("stage1.loss.spread.weight", 10.0),
+        ("stage1.iterations", 9),
+        ("stage1.iterations", 2),  # a setting named again goes over what it was given before
     )
-    config = tomllib.loads((tmp_path / "config.toml").read_text())["radiance"]
-    assert config["zero_events"] == "bound" and config["spread_weight"] == 10.0
+    options = ReconstructOptions(preset="tiny", stage="radiance", settings=settings)
+    reconstruct(color_session, tmp_path, options)
+    config = tomllib.loads((tmp_path / "config.toml").read_text())["stage1"]
+    assert config["event_loss"]["zero_events"] == "bound"
+    assert config["loss"]["spread"]["weight"] == 10.0
     assert config["iterations"] == 2
 
 
 def test_the_background_alone_first_then_the_gaussians_with_fasts_terms(color_session):
-    config = cfg.preset(
-        "tiny",
-        iterations=4,
-        background_first=0.5,
-        spread_weight=10.0,
-        smooth_weight=0.3,
-        curvature_weight=1.0,
-        alpha_weight=0.03,
-        background_tv_weight=1.0,
-    )
+    terms = {"spread": 10.0, "smooth": 0.3, "curvature": 1.0, "alpha": 0.03, "background_tv": 1.0}
+    settings = {f"stage1.loss.{term}.weight": weight for term, weight in terms.items()}
+    settings |= {"stage1.iterations": 4, "stage1.background.first": 0.5}
+    config = preset("tiny", settings).stage1
     with Session.open(color_session) as session:
         data = load_training_data(session, config, "cpu")
     seen: list[tuple[torch.Tensor, torch.Tensor]] = []
@@ -529,7 +520,8 @@ def test_the_background_alone_first_then_the_gaussians_with_fasts_terms(color_se
 
 
 def test_coarse_to_fine_renders_the_first_part_of_the_run_small(color_session, monkeypatch):
-    config = cfg.preset("tiny", iterations=4, coarse_until=0.5, coarse_resolution=0.125)
+    settings = {"stage1.iterations": 4, "stage1.coarse.until": 0.5}
+    config = preset("tiny", settings | {"stage1.coarse.resolution": 0.125}).stage1
     with Session.open(color_session) as session:
         data = load_training_data(session, config, "cpu")
     widths: list[int] = []
@@ -541,25 +533,25 @@ def test_coarse_to_fine_renders_the_first_part_of_the_run_small(color_session, m
 
     monkeypatch.setattr(RadianceField, "render_view", spy)
     train_radiance(data, config)
-    half = 2 * config.views_per_step  # the renders of the first two of four steps
+    half = 2 * config.windows.views_per_step  # the renders of the first two of four steps
     assert data.coarse_grid.width < data.grid.width
     assert widths == [data.coarse_grid.width] * half + [data.grid.width] * half
-    with pytest.raises(InputError, match="coarse_until"):
-        cfg.preset("tiny", coarse_until=2.0)
-    with pytest.raises(InputError, match="coarse_resolution"):
-        cfg.preset("tiny", coarse_resolution=0.0)
+    with pytest.raises(InputError, match="coarse.until"):
+        preset("tiny", {"stage1.coarse.until": 2.0})
+    with pytest.raises(InputError, match="coarse.resolution"):
+        preset("tiny", {"stage1.coarse.resolution": 0.0})
 
 
 def test_the_refractory_bound_counts_the_crowded_events(color_session, tmp_path):
     """With the calibration's refractory period and the bound asked for, the events within
     twice the period of their pixel's previous one are counted again, apart; not otherwise.
     Asked for without the period, a clear error."""
-    bound = cfg.preset("tiny", refractory_bound=True)
+    bound = preset("tiny", {"stage1.windows.refractory_bound": True}).stage1
     with Session.open(color_session) as s, pytest.raises(InputError, match="evcap calibrate"):
         load_training_data(s, bound, "cpu")
     with Session.open(with_refractory(color_session, 2000.0, tmp_path)) as s:
         crowded = load_training_data(s, bound, "cpu").windows.crowded
-        plain = load_training_data(s, cfg.preset("tiny"), "cpu").windows
+        plain = load_training_data(s, preset("tiny").stage1, "cpu").windows
     assert plain.crowded is None and crowded is not None
     assert 0 < crowded.events < plain.events
 
@@ -567,14 +559,14 @@ def test_the_refractory_bound_counts_the_crowded_events(color_session, tmp_path)
 def test_gaussians_start_on_the_poses_points_when_asked(color_session, tmp_path):
     session = shutil.copy(color_session, tmp_path / "s.h5")
     with Session.open(session) as s:
-        data = load_training_data(s, cfg.preset("tiny"), "cpu")
+        data = load_training_data(s, preset("tiny").stage1, "cpu")
     centre, radius = data.volume.center, data.volume.radius
     rng = np.random.default_rng(0)
     inside = centre + rng.normal(0, 0.3 * radius, (50, 3))
     far = centre + np.array([10 * radius, 0, 0])  # an outlier of structure from motion
     with h5py.File(session, "r+") as f:
         f["poses"].create_dataset("points_xyz", data=np.vstack([inside, far]))
-    config = cfg.preset("tiny", init_gaussians=200, init_on_points=0.5)
+    config = preset("tiny", {"stage1.init.gaussians": 200, "stage1.init.on_points": 0.5}).stage1
     with Session.open(session) as s:
         data = load_training_data(s, config, "cpu")
     means = new_field(data, config, 0, "cpu", "torch").gaussians.means.detach().numpy()
@@ -583,11 +575,11 @@ def test_gaussians_start_on_the_poses_points_when_asked(color_session, tmp_path)
     on = means[:50].astype(np.float64)
     assert np.abs(np.sort(on, axis=0) - np.sort(inside, axis=0)).max() < 1e-5
     assert not np.isclose(means[50:], far.astype(np.float32)).all(axis=1).any()
-    without = cfg.preset("tiny", init_gaussians=200)
+    without = preset("tiny", {"stage1.init.gaussians": 200}).stage1
     random = new_field(data, without, 0, "cpu", "torch").gaussians.means.detach().numpy()
     assert not np.isin(random, on.astype(np.float32)).all(axis=1).any()
-    with pytest.raises(InputError, match="init_on_points"):
-        cfg.preset("tiny", init_on_points=1.5)
+    with pytest.raises(InputError, match="init.on_points"):
+        preset("tiny", {"stage1.init.on_points": 1.5})
 
 
 # every preset runs at a tiny size in the default run: tiny in most tests here, paper above,
@@ -595,19 +587,14 @@ def test_gaussians_start_on_the_poses_points_when_asked(color_session, tmp_path)
 RUN_ELSEWHERE = {"tiny", "paper", "small"}
 
 
-@pytest.mark.parametrize("preset", sorted(set(cfg.PRESET_NAMES) - RUN_ELSEWHERE))
-def test_a_preset_runs_both_stages_at_a_tiny_size(color_session, tmp_path, preset):
-    result = reconstruct(
-        color_session,
-        tmp_path / preset,
-        preset=preset,
-        iterations=6,
-        material_iterations=2,
-        resolution=0.25,
-    )
-    assert result.preset == preset and result.iterations == 6
+@pytest.mark.parametrize("name", sorted(set(PRESET_NAMES) - RUN_ELSEWHERE))
+def test_a_preset_runs_both_stages_at_a_tiny_size(color_session, tmp_path, name):
+    settings = {"stage1.iterations": 6, "stage2.iterations": 2, "stage1.resolution": 0.25}
+    options = ReconstructOptions(preset=name, settings=settings)
+    result = reconstruct(color_session, tmp_path / name, options)
+    assert result.preset == name and result.iterations == 6
     assert result.material_iterations == 2 and not result.interrupted
 
 
 def test_every_preset_has_a_tiny_run():
-    assert set(cfg.PRESET_NAMES) >= RUN_ELSEWHERE
+    assert set(PRESET_NAMES) >= RUN_ELSEWHERE

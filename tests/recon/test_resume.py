@@ -1,6 +1,7 @@
 """An interrupted reconstruction goes on from the step it stopped at, as if it never stopped:
 the same bits."""
 
+import dataclasses
 import json
 import os
 import shutil
@@ -10,6 +11,7 @@ import pytest
 import torch
 
 from evcap.errors import InputError
+from evcap.recon.options import Feedback, ReconstructOptions
 from evcap.recon.reconstruct import reconstruct
 from evcap.recon.resume import stop_after_step
 from evcap.records import ReconstructionFolder
@@ -32,24 +34,27 @@ def material(out):
     return torch.load(out / "checkpoint" / "material.pt", weights_only=True)["material"]
 
 
-RUN = {"preset": "tiny", "material_iterations": 12}
+RUN = ReconstructOptions(preset="tiny", settings={"stage2.iterations": 12})
+# stage I alone (stage II's settings are refused with it)
+RADIANCE = ReconstructOptions(preset="tiny", stage="radiance")
+START_OVER = "go on or start over"  # --force
 
 
 @pytest.fixture(scope="module")
 def uninterrupted(session, tmp_path_factory):
     out = tmp_path_factory.mktemp("whole")
-    return out, reconstruct(session, out, **RUN)
+    return out, reconstruct(session, out, RUN)
 
 
 def test_stage_one_goes_on_from_where_it_stopped(session, uninterrupted, tmp_path, interrupt_at):
     whole, expected = uninterrupted
     # step 40: before the densification at step 50, which then uses the gradients seen before
-    first = reconstruct(session, tmp_path, **RUN, progress=interrupt_at(40, "radiance"))
+    first = reconstruct(session, tmp_path, RUN, Feedback(progress=interrupt_at(40, "radiance")))
     assert first.interrupted and first.iterations == 40
     assert ReconstructionFolder(tmp_path).training_state("radiance").exists()
     assert first.material_iterations is None  # stage II did not start
     said = []
-    result = reconstruct(session, tmp_path, **RUN, say=said.append)
+    result = reconstruct(session, tmp_path, RUN, Feedback(say=said.append))
     assert said and "going on from step 40 of 150" in said[0]
     assert not result.interrupted and result.iterations == 150
     assert result.gaussians == expected.gaussians
@@ -63,17 +68,17 @@ def test_stage_one_goes_on_from_where_it_stopped(session, uninterrupted, tmp_pat
     assert steps == [x["step"] for x in expected.training_log["radiance"]]
     assert not ReconstructionFolder(tmp_path).training_state("radiance").exists()
     with pytest.raises(InputError, match="already holds"):  # finished: nothing to go on with
-        reconstruct(session, tmp_path, **RUN)
+        reconstruct(session, tmp_path, RUN)
 
 
 def test_stage_two_goes_on_without_running_stage_one_again(
     session, uninterrupted, tmp_path, interrupt_at
 ):
     whole, expected = uninterrupted
-    first = reconstruct(session, tmp_path, **RUN, progress=interrupt_at(5, "material"))
+    first = reconstruct(session, tmp_path, RUN, Feedback(progress=interrupt_at(5, "material")))
     assert first.interrupted and first.material_iterations == 5
     said = []
-    result = reconstruct(session, tmp_path, **RUN, say=said.append)
+    result = reconstruct(session, tmp_path, RUN, Feedback(say=said.append))
     assert said == [s for s in said if s.startswith("stage II: going on from step 5 of 12")]
     assert not result.interrupted and result.material_iterations == 12
     assert result.iterations == 150  # stage I's figures kept
@@ -94,14 +99,15 @@ def test_a_stage_two_state_that_does_not_fit_is_refused_by_name(
     whole, _ = uninterrupted
     (tmp_path / "checkpoint").mkdir()
     shutil.copy(whole / "checkpoint" / "radiance.pt", tmp_path / "checkpoint" / "radiance.pt")
-    run = {**RUN, "stage": "material", "visibility": "on"}
-    reconstruct(session, tmp_path, **run, progress=interrupt_at(3, "material"))
+    settings = {"stage2.iterations": 12, "stage2.visibility": "on"}
+    run = dataclasses.replace(RUN, stage="material", settings=settings)
+    reconstruct(session, tmp_path, run, Feedback(progress=interrupt_at(3, "material")))
     path = ReconstructionFolder(tmp_path).training_state("material")
     state = torch.load(path, weights_only=True)
     state["material"]["visibility_sh"] = state["material"].pop("visibility")
     torch.save(state, path)
     with pytest.raises(InputError, match="does not hold what this evcap's stage II holds.*--force"):
-        reconstruct(session, tmp_path, **run)
+        reconstruct(session, tmp_path, run)
 
 
 def test_a_stage_two_state_from_another_stage_one_is_refused_or_started_over(
@@ -109,28 +115,28 @@ def test_a_stage_two_state_from_another_stage_one_is_refused_or_started_over(
 ):
     """Stage I beside it changed after stage II was interrupted: refused by name, and with
     --force (as the demo runs it) said and started over."""
-    reconstruct(session, tmp_path, **RUN, progress=interrupt_at(5, "material"))
+    reconstruct(session, tmp_path, RUN, Feedback(progress=interrupt_at(5, "material")))
     path = tmp_path / "checkpoint" / "radiance.pt"
     checkpoint = torch.load(path, weights_only=True)
     checkpoint["gaussians"]["means"][0] += 0.01
     torch.save(checkpoint, path)
     with pytest.raises(InputError, match="stage II that cannot .*another stage I.*--force"):
-        reconstruct(session, tmp_path, **RUN)
+        reconstruct(session, tmp_path, RUN)
     said = []
-    result = reconstruct(session, tmp_path, **RUN, overwrite=True, say=said.append)
+    forced = dataclasses.replace(RUN, resume=START_OVER)
+    result = reconstruct(session, tmp_path, forced, Feedback(say=said.append))
     assert said and said[0].startswith("stage II: starting over; the state it saved cannot")
     assert not result.interrupted and result.material_iterations == 12
 
 
 def test_other_settings_are_refused_or_started_over(session, tmp_path, interrupt_at):
-    reconstruct(session, tmp_path, **RUN, stage="radiance", progress=interrupt_at(20, "radiance"))
+    reconstruct(session, tmp_path, RADIANCE, Feedback(progress=interrupt_at(20, "radiance")))
     with pytest.raises(InputError, match="stage I .* other settings: seed 0 [(]now 1[)]"):
-        reconstruct(session, tmp_path, **RUN, stage="radiance", seed=1)
+        reconstruct(session, tmp_path, dataclasses.replace(RADIANCE, seed=1))
     assert ReconstructionFolder(tmp_path).training_state("radiance").exists()  # the refusal kept it
     said = []
-    result = reconstruct(
-        session, tmp_path, **RUN, stage="radiance", seed=1, overwrite=True, say=said.append
-    )
+    forced = dataclasses.replace(RADIANCE, seed=1, resume=START_OVER)
+    result = reconstruct(session, tmp_path, forced, Feedback(say=said.append))
     assert said == [
         "stage I: starting over; the state it saved cannot be gone on with (it was started "
         "with other settings: seed 0 (now 1))"
@@ -139,16 +145,17 @@ def test_other_settings_are_refused_or_started_over(session, tmp_path, interrupt
 
 
 def test_a_state_another_version_saved_is_refused_by_name(session, tmp_path, interrupt_at):
-    reconstruct(session, tmp_path, **RUN, stage="radiance", progress=interrupt_at(20, "radiance"))
+    reconstruct(session, tmp_path, RADIANCE, Feedback(progress=interrupt_at(20, "radiance")))
     path = ReconstructionFolder(tmp_path).training_state("radiance")
     state = torch.load(path, weights_only=True)
     del state["format"], state["evcap"], state["data"]  # as the evcap before format 2 saved it
     torch.save(state, path)
     expected = "another version of evcap saved it .*state format 1.*pass --force to start over"
     with pytest.raises(InputError, match=expected):
-        reconstruct(session, tmp_path, **RUN, stage="radiance")
+        reconstruct(session, tmp_path, RADIANCE)
     said = []
-    reconstruct(session, tmp_path, **RUN, stage="radiance", overwrite=True, say=said.append)
+    forced = dataclasses.replace(RADIANCE, resume=START_OVER)
+    reconstruct(session, tmp_path, forced, Feedback(say=said.append))
     assert len(said) == 1 and said[0].startswith("stage I: starting over; the state it saved")
 
 
@@ -158,8 +165,8 @@ def test_a_step_cut_in_two_is_not_saved(session, tmp_path, monkeypatch):
     def cut(*args, **kwargs):
         raise KeyboardInterrupt  # a second Ctrl-C, in the middle of a step
 
-    monkeypatch.setattr(densify.Densifier, "densify", cut)
-    result = reconstruct(session, tmp_path, **RUN, stage="radiance")
+    monkeypatch.setattr(densify.DefaultStrategy, "densify", cut)
+    result = reconstruct(session, tmp_path, RADIANCE)
     assert (
         result.interrupted
         and not ReconstructionFolder(tmp_path).training_state("radiance").exists()

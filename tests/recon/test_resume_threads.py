@@ -12,9 +12,10 @@ import numba
 import pytest
 import torch
 
-from evcap.recon import config as cfg
 from evcap.recon.export import load_checkpoint
 from evcap.recon.material import stage as material
+from evcap.recon.options import Feedback, ReconstructOptions
+from evcap.recon.presets import preset
 from evcap.recon.radiance import stage as radiance
 from evcap.recon.reconstruct import reconstruct
 from evcap.recon.resume import digest
@@ -25,8 +26,9 @@ from evcap.sim.simulate import simulate
 
 # the poses refined: stage II goes on the path stage I refined (OUT/poses.h5); visibility and
 # the light's bounces baked at stage II's start
-RUN = {"preset": "tiny", "material_iterations": 12, "refine_poses": "on"}
-RUN |= {"visibility": "on", "indirect": "on"}
+SETTINGS = {"stage2.iterations": 12, "stage1.poses.refine": "on"}
+SETTINGS |= {"stage2.visibility": "on", "stage2.indirect": "on"}
+RUN = ReconstructOptions(preset="tiny", settings=SETTINGS)
 # what each stage builds at its start: going on, it must take all of it from its state
 BUILDERS = {
     "radiance": [(radiance, "new_field"), (radiance, "scene_volume"), (radiance, "render_grid")],
@@ -91,7 +93,7 @@ def uninterrupted(session, tmp_path_factory):
                 set_threads(*after, limit)
 
     with threads(*START):
-        reconstruct(session, out, **RUN, progress=change_threads)
+        reconstruct(session, out, RUN, Feedback(progress=change_threads))
     return out
 
 
@@ -104,7 +106,7 @@ def test_each_stage_goes_on_on_other_threads_from_what_it_saved(
     bit for bit where the run that never stopped (on the same threads) ended."""
     (first, at_first, _), (second, at_second, _) = CUTS
     with threads(*START):
-        cut = reconstruct(session, tmp_path, **RUN, progress=interrupt_at(at_first, first))
+        cut = reconstruct(session, tmp_path, RUN, Feedback(progress=interrupt_at(at_first, first)))
     assert cut.interrupted
     for stage, at, after in CUTS:
         for module, name in BUILDERS[stage]:
@@ -116,7 +118,7 @@ def test_each_stage_goes_on_on_other_threads_from_what_it_saved(
         said = []
         stop = interrupt_at(at_second, second) if stage == first else None
         with threads(*after):
-            result = reconstruct(session, tmp_path, **RUN, say=said.append, progress=stop)
+            result = reconstruct(session, tmp_path, RUN, Feedback(say=said.append, progress=stop))
         which = "I" if stage == "radiance" else "II"
         assert said == [s for s in said if s.startswith(f"stage {which}: going on from step {at}")]
         assert said and result.interrupted == (stage == first)
@@ -151,8 +153,16 @@ def test_what_the_stages_derive_at_their_start_is_the_same_on_any_threads(sessio
     bits (torch alone gives other values on two threads there; recon/_threads.py)."""
     field = big_field(uninterrupted, 40_000 // 1500 + 1)
     assert len(field.gaussians) > 40_000
-    stage1 = cfg.preset("tiny", init_gaussians=40_000)
-    mconfig = cfg.material_preset("tiny", visibility="auto", indirect="auto", edge_frames=6)
+    settings = preset(
+        "tiny",
+        {
+            "stage1.init.gaussians": 40_000,
+            "stage2.visibility": "auto",
+            "stage2.indirect": "auto",
+            "stage2.edges.frames": 6,
+        },
+    )
+    stage1, mconfig = settings.stage1, settings.stage2
     found = []
     for count, parallel in ((1, True), (2, True), (2, False)):
         with threads(count, parallel), Session.open(session) as s:
@@ -184,8 +194,10 @@ def test_a_reconstruction_keeps_to_the_threads_torch_was_set_to(session, tmp_pat
 import torch
 torch.set_num_threads(1)
 import numba
+from evcap.recon.options import ReconstructOptions
 from evcap.recon.reconstruct import reconstruct
-reconstruct({str(session)!r}, {str(tmp_path)!r}, preset="tiny", stage="radiance", iterations=3)
+options = ReconstructOptions(preset="tiny", stage="radiance", settings={{"stage1.iterations": 3}})
+reconstruct({str(session)!r}, {str(tmp_path)!r}, options)
 print(torch.get_num_threads(), numba.get_num_threads())
 """
     run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import torch
 
+from evcap.recon.events.loss import log_radiance, window_loss
 from evcap.recon.events.windows import EventWindows
-from evcap.recon.radiance.losses import anchor_loss, event_loss, log_radiance, normal_loss
+from evcap.recon.radiance.losses import anchor_loss, normal_loss
 from evcap.recon.raster.rasterize import Camera, rasterize
 from evcap.records import Poses
 
@@ -129,7 +130,7 @@ def test_a_window_with_no_events(zero_events, silent_weight):
     target, counts = w.log_change(0, 2)
     assert counts.sum() == 0
     predicted = torch.zeros(12, requires_grad=True)
-    loss = event_loss(
+    loss = window_loss(
         predicted,
         target,
         counts,
@@ -147,7 +148,7 @@ def test_a_window_with_no_events(zero_events, silent_weight):
 def test_every_pixel_masked_out_is_finite():
     predicted = torch.ones(12, requires_grad=True)
     z = torch.zeros(12)
-    loss = event_loss(predicted, z, z, z + 0.2, z + 0.2, torch.zeros(12, dtype=torch.bool))
+    loss = window_loss(predicted, z, z, z + 0.2, z + 0.2, torch.zeros(12, dtype=torch.bool))
     loss.backward()
     assert loss == 0 and torch.isfinite(predicted.grad).all()
 
@@ -169,7 +170,7 @@ def test_millions_of_events_in_one_window():
     np.testing.assert_allclose(target.numpy(), expected, atol=1e-3)
     predicted = torch.zeros(width * height, requires_grad=True)
     mask = torch.ones(width * height, dtype=torch.bool)
-    loss = event_loss(predicted, target, counts, w.threshold_on, w.threshold_off, mask)
+    loss = window_loss(predicted, target, counts, w.threshold_on, w.threshold_off, mask)
     loss.backward()
     assert torch.isfinite(loss) and torch.isfinite(predicted.grad).all()
 

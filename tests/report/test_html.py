@@ -123,7 +123,7 @@ def make_reconstruction(out: Path, session: Path) -> Path:
     (out / "renders" / "relit").mkdir()
     (out / "config.toml").write_text(
         f'[reconstruct]\nsession = "{session}"\nstage = "all"\npreset = "tiny"\n\n'
-        "[material]\nedge_slice_ms = 10.0\n"
+        "[stage2.edges]\nslice_ms = 10.0\n"
     )
     metrics = {
         "object_psnr_gain": 19.25,
