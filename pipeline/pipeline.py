@@ -180,12 +180,7 @@ class Pipeline:
         except (ValueError, KeyError, TypeError):
             raise InputError(f"{path} is damaged; {self.hint}") from None
         if held != self.settings.held():
-            then, now = _by_name(held), _by_name(self.settings.held())
-            other = ", ".join(
-                f"{k} {then.get(k, 'not given')}"
-                for k in dict.fromkeys([*then, *now])
-                if then.get(k) != now.get(k)
-            )
+            other = _differences(held, self.settings.held())
             raise InputError(
                 f"{self.workspace.root} holds a run made with {other}; choose another output "
                 f"folder, or {self.hint}"
@@ -272,11 +267,21 @@ class Pipeline:
 
 
 def _by_name(held: dict) -> dict[str, object]:
-    """Held settings by the names a user gives them (--preset, stage1.iterations, board)."""
-    options = dict(held.get("reconstruct", {}))
+    """Held settings by the names a user gives them (--preset, stage1.iterations, board); a
+    state an earlier evcap wrote held preset, device, seed and relight beside the board."""
+    options = held.get("reconstruct", {k: v for k, v in held.items() if k in FLAGS})
     out: dict[str, object] = {FLAGS.get(k, k): v for k, v in options.items() if k != "settings"}
     out |= options.get("settings", {})
-    return out | {k: v for k, v in held.items() if k != "reconstruct"}
+    return out | {k: v for k, v in held.items() if k != "reconstruct" and k not in FLAGS}
+
+
+def _differences(then: dict, now: dict) -> str:
+    """What a held state was made with, where it differs from now: its options, and the
+    settings given by name now that it was not made with."""
+    then, now = _by_name(then), _by_name(now)
+    named = [k for k in now if k not in then and "." in k]
+    differ = [k for k in then if then[k] != now.get(k)] + named
+    return ", ".join(f"{k} {then.get(k, 'not given')}" for k in differ)
 
 
 def figures_line(figures: dict[str, float]) -> str:
