@@ -2,7 +2,6 @@
 reference/method.md (tests/recon/test_reconstruct.py runs it end to end, its steps cut
 short); every preset resolves to the settings it had before they were nested by component."""
 
-import dataclasses
 import json
 import re
 from pathlib import Path
@@ -107,18 +106,6 @@ def test_every_preset_resolves_to_the_settings_it_had(name):
     settings = preset(name)
     assert as_before(settings.stage1, STAGE_ONE) == BEFORE[name]["stage1"]
     assert as_before(settings.stage2, STAGE_TWO) == BEFORE[name]["stage2"]
-
-
-def test_no_config_has_more_than_twenty_settings_of_its_own():
-    def configs(config):
-        yield config
-        for f in dataclasses.fields(config):
-            value = getattr(config, f.name)
-            if dataclasses.is_dataclass(value):
-                yield from configs(value)
-
-    for c in configs(preset("paper")):
-        assert len(dataclasses.fields(c)) <= 20, type(c).__name__
 
 
 def number(text: str, pattern: str) -> float:

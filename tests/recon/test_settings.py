@@ -31,6 +31,11 @@ def test_every_setting_says_what_it_is():
     assert all(doc for _, _, doc in describe(settings))
 
 
+def test_no_config_has_more_than_twenty_settings_of_its_own():
+    for config in configs(preset("paper")):
+        assert len(dataclasses.fields(config)) <= 20, type(config).__name__
+
+
 def test_a_setting_is_replaced_by_its_dotted_name_and_checked():
     s = preset("tiny", {"stage1.densify.grad_threshold": 3e-4, "stage2.edges.frames": 8})
     assert s.stage1.densify.grad_threshold == 3e-4 and s.stage2.edges.frames == 8
