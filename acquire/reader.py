@@ -57,6 +57,21 @@ class BulkReader:
     def running(self) -> bool:
         return self._thread.is_alive()
 
+    @property
+    def queued_bytes(self) -> int:
+        """Received and not yet taken: the host's backlog."""
+        return self._queued
+
+    @property
+    def max_queued_bytes(self) -> int:
+        """Past this the reader holds transfers back, and the camera holds the data."""
+        return self._max_queued
+
+    @property
+    def held_transfers(self) -> int:
+        """Transfers held back now (0 while the consumer keeps up)."""
+        return len(self._held)
+
     def stop(self, timeout_s: float = 5.0) -> bool:
         """Cancel the transfers, keep the data they received, and end the thread. False if
         the thread did not end in time (its transfers may still be in flight)."""

@@ -1,16 +1,19 @@
 """The recorder: a running DAVIS346 -> session files, losing nothing the camera sent.
 
 It decodes what the reader thread received, hands every batch to ``on_batch`` (the monitor's
-live view) and, while a recording is open, appends it to the session (the session writer
-flushes every 0.5 s). ``evcap record`` keeps one recording open for the whole run; the monitor
-opens and closes recordings on request. Stopping (a stop request, the duration, the end of a
+live view) and, while a recording is open, hands it to the session's writer thread, which
+appends it and flushes every 0.5 s (so that decoding and writing run side by side).
+``evcap record`` keeps one recording open for the whole run; the monitor opens and closes
+recordings on request. Stopping (a stop request, the duration, the end of a
 replay fixture) stops the camera, takes in what was still in flight, decodes it and closes the
 session. A lost camera or a failing disk end the recording with what was received; the session
 stays valid either way.
 
 Other threads talk to a running recorder only through its request methods (``stop``,
 ``start_recording``, ``stop_recording``, ``set_bias``); it reports back through ``on_event``
-with the event dataclasses below.
+with the event dataclasses below. Every second it reports the device's dropped-event counters
+and the backlog (``Stats``), also while it waits for a writer that has fallen behind, so that
+users see the host falling behind while it happens.
 """
 
 from __future__ import annotations
@@ -20,13 +23,15 @@ import queue
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Literal, get_args
 
 from evcap.acquire import protocol as P
+from evcap.acquire.backlog import Backlog
 from evcap.acquire.decoder import Decoded, StreamDecoder
 from evcap.acquire.device import Davis346
+from evcap.acquire.writer_thread import WriterThread
 from evcap.errors import (
     DeviceError,
     DeviceLostError,
@@ -78,6 +83,8 @@ class RecordResult:
     decoder: dict = field(default_factory=dict)
     reader: dict = field(default_factory=dict)
     error: str | None = None  # what went wrong, for "camera lost", "disk full", "write failed"
+    largest_backlog_bytes: int = 0  # the most data received and not yet written, at a Stats
+    behind_seconds: int = 0  # Stats (one a second) that found the host falling behind
 
 
 # -- what the recorder reports (through on_event, from its own thread) -------------------------
@@ -113,10 +120,17 @@ class RecorderError:
 
 @dataclass(frozen=True)
 class Stats:
-    """Read every second: the device's dropped-event counters and the free disk space."""
+    """Read every second: the device's dropped-event counters, the free disk space and the
+    backlog."""
 
     device_dropped: dict
     free_bytes: int | None
+    backlog: Backlog = field(default_factory=Backlog)
+
+    @property
+    def dropped(self) -> int:
+        """Events the camera dropped since it started, all counters together."""
+        return sum(self.device_dropped.values())
 
 
 def _shifted(d: Decoded, t0: int) -> Decoded:
@@ -133,19 +147,18 @@ def _shifted(d: Decoded, t0: int) -> Decoded:
 
 
 class _Recording:
-    """One session being written."""
+    """One session being written (by a writer thread of its own)."""
 
     def __init__(self, writer: SessionWriter, t0: int) -> None:
         self.writer = writer
+        self.thread = WriterThread(writer)
         self.t0 = t0  # decoder time of the session's t = 0
         self.result = RecordResult(writer.path)
 
-    def write(self, d: Decoded) -> None:
+    def write(self, d: Decoded, wait: Callable[[], None] | None = None) -> None:
+        """Hand the batch to the writer thread (``wait`` is called while its queue is full)."""
         d = _shifted(d, self.t0)
-        self.writer.append_events(d.events)
-        self.writer.append_frames(d.frames)
-        self.writer.append_imu(d.imu)
-        self.writer.append_triggers(d.triggers)
+        self.thread.put(d, wait)
         r = self.result
         r.events += len(d.events)
         r.frames += len(d.frames)
@@ -190,6 +203,7 @@ class Recorder:
         self.device_dropped: dict[str, int] = {}
         self.decoder: StreamDecoder | None = None
         self.end_reason: EndReason = "stopped"
+        self._next_stats = 0.0  # clock time of the next Stats
 
     # -- requests from other threads -----------------------------------------------------------
 
@@ -258,7 +272,7 @@ class Recorder:
         r.reader = asdict(self.device.reader.stats)
         r.device_dropped = dict(self.device_dropped)
         try:
-            rec.writer.close(
+            rec.thread.close(
                 {
                     "end_reason": end_reason,
                     "device_dropped_events": json.dumps(r.device_dropped),
@@ -278,7 +292,7 @@ class Recorder:
     def _fail(self, error: SessionWriteError) -> RecordResult:
         """The open recording's disk failed: keep what was flushed."""
         rec, self._recording = self._recording, None
-        rec.writer.abort()
+        rec.thread.abort()
         r = rec.result
         r.end_reason, r.error = "write failed", str(error)
         self.result = r
@@ -302,7 +316,7 @@ class Recorder:
                     self.biases[name] = code
                     if self._recording is not None:
                         t = self.decoder.now_us - self._recording.t0
-                        self._recording.writer.append_setting(t, f"bias.{name}", code)
+                        self._recording.thread.append_setting(t, f"bias.{name}", code)
                     self.on_event(BiasChanged(name, code))
             except EvcapError as e:
                 self.on_event(RecorderError(str(e)))
@@ -313,7 +327,7 @@ class Recorder:
         d = self.decoder.decode(b"".join(chunks))
         if self._recording is not None:
             try:
-                self._recording.write(d)
+                self._recording.write(d, self._report_while_waiting)
             except SessionWriteError as e:
                 if self.path is not None:
                     raise
@@ -321,15 +335,42 @@ class Recorder:
         if self.on_batch is not None:
             self.on_batch(d)
 
-    def _stats(self) -> bool:
-        """Read the device's counters and the free disk space; False if the disk is full."""
+    def backlog(self) -> Backlog:
+        """What was received and is not yet written (or decoded, while not recording)."""
+        reader, rec = self.device.reader, self._recording
+        b = Backlog(reader.queued_bytes, reader.max_queued_bytes, reader.held_transfers)
+        if rec is not None:
+            b = replace(b, decoded_bytes=rec.thread.queued_bytes)
+            b = replace(b, decoded_limit=rec.thread.max_queued_bytes)
+        return b
+
+    def _read_stats(self) -> Stats:
+        """The device's counters, the free disk space and the backlog, reported."""
+        self._next_stats = self._clock() + STATS_INTERVAL_S
         try:
             self.device_dropped = self.device.dropped_counters()
         except DeviceError:
             pass  # a camera being unplugged: the reader reports it
         rec = self._recording
         free = rec.writer.free_bytes() if rec is not None else None
-        self.on_event(Stats(dict(self.device_dropped), free))
+        stats = Stats(dict(self.device_dropped), free, self.backlog())
+        if rec is not None:
+            r = rec.result
+            r.largest_backlog_bytes = max(r.largest_backlog_bytes, stats.backlog.total_bytes)
+            r.behind_seconds += stats.backlog.falling_behind
+        self.on_event(stats)
+        return stats
+
+    def _report_while_waiting(self) -> None:
+        """Called while the writer's queue is full: the monitor goes on, and so do Stats."""
+        if self.on_tick is not None:
+            self.on_tick()
+        if self._clock() >= self._next_stats and self.device.streaming:
+            self._read_stats()
+
+    def _stats(self) -> bool:
+        """Read and report the stats; False if the disk is full (the recording is closed)."""
+        free = self._read_stats().free_bytes
         if free is not None and free < self.options.min_free_bytes:
             self._close("disk full", f"only {free / 1e6:.0f} MB left on the disk")
             return False
@@ -349,20 +390,17 @@ class Recorder:
         try:
             if self.path is not None:
                 self._open(self.path)
-            started = next_stats = self._clock()
+            started = self._next_stats = self._clock()
             while True:
                 self._apply_requests()
                 self._take(reader.take(0.01))
                 if self.on_tick is not None:
                     self.on_tick()
-                if self._recording is not None:
-                    self._recording.writer.flush_if_due()
                 now = self._clock()
-                if now >= next_stats and dev.streaming:
-                    next_stats = now + STATS_INTERVAL_S
-                    if not self._stats() and self.path is not None:
-                        self.end_reason = "disk full"
-                        break
+                due = now >= self._next_stats and dev.streaming
+                if due and not self._stats() and self.path is not None:
+                    self.end_reason = "disk full"
+                    break
                 if reader.lost or reader.failure:
                     self.end_reason = "camera lost"
                     break
@@ -394,7 +432,7 @@ class Recorder:
         except BaseException:
             dev.stop()
             if self._recording is not None:
-                self._recording.writer.abort()
+                self._recording.thread.abort()
             raise
         r = self.result
         if self.path is not None and r is not None:

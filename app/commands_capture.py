@@ -192,7 +192,7 @@ def _run_app(app, recorder) -> None:
         raise app.capture_error
 
 
-def _status_line(recorder):
+def _status_line(recorder, watch):
     """An on_batch callback that redraws one status line on stderr, twice a second."""
     import time
 
@@ -209,13 +209,29 @@ def _status_line(recorder):
         size = r.path.stat().st_size / 1e6 if r.path.exists() else 0.0
         print(
             f"\r{now - started:7.1f} s  {r.events:>13,} events  {r.frames:>6,} frames  "
-            f"{r.imu:>8,} IMU  {size:8.1f} MB",
+            f"{r.imu:>8,} IMU  {size:8.1f} MB  backlog {watch.backlog.total_bytes / 1e6:5.1f} MB",
             end="",
             file=sys.stderr,
             flush=True,
         )
 
     return show
+
+
+def _behind_warnings(watch, tty: bool):
+    """An on_event callback that says on stderr, while it happens, when the host falls behind,
+    catches up, or the camera drops events (evcap.acquire.backlog)."""
+    from evcap.acquire.recorder import Stats
+
+    def on_event(event) -> None:
+        if not isinstance(event, Stats):
+            return
+        for severity, text in watch.update(event.backlog, event.dropped):
+            line = f"warning: {text}" if severity == "warning" else text
+            # on a terminal, over the status line (redrawn after)
+            print(f"\r\x1b[K{line}" if tty else line, file=sys.stderr, flush=True)
+
+    return on_event
 
 
 def _record_arguments(p: argparse.ArgumentParser) -> None:
@@ -233,6 +249,7 @@ def _record_arguments(p: argparse.ArgumentParser) -> None:
 def _record(args: argparse.Namespace) -> int:
     import signal
 
+    from evcap.acquire.backlog import BehindWatch
     from evcap.acquire.device import Davis346
     from evcap.acquire.recorder import Recorder
 
@@ -262,8 +279,10 @@ def _record(args: argparse.Namespace) -> int:
                 "(Ctrl-C stops)",
                 file=sys.stderr,
             )
+            watch = BehindWatch()
+            recorder.on_event = _behind_warnings(watch, sys.stderr.isatty())
             if sys.stderr.isatty():
-                recorder.on_batch = _status_line(recorder)
+                recorder.on_batch = _status_line(recorder, watch)
             r = recorder.run()
             if sys.stderr.isatty():
                 print(file=sys.stderr)  # end the status line
@@ -272,6 +291,13 @@ def _record(args: argparse.Namespace) -> int:
         f"{args.output}: {r.events:,} events, {r.frames:,} frames, {r.imu:,} IMU samples, "
         f"{r.triggers:,} triggers ({r.end_reason}; dropped on the device: {dropped:,})"
     )
+    if r.behind_seconds:
+        print(
+            f"warning: the host fell behind the camera while recording (at {r.behind_seconds} "
+            f"of the once-a-second checks; the largest backlog {r.largest_backlog_bytes / 1e6:.1f}"
+            " MB); fewer programs running beside it, or a faster disk, help",
+            file=sys.stderr,
+        )
     c = r.decoder or {}
     bad = sum(c.get(k, 0) for k in ("unknown_words", "time_went_backwards", "timestamp_jumps"))
     if bad > 0.001 * c.get("words", 0):

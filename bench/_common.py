@@ -23,7 +23,12 @@ def report(name: str, figures: dict) -> None:
     """Print ``figures`` and write them with the machine description to results/NAME.json."""
     RESULTS.mkdir(exist_ok=True)
     for key, value in figures.items():
-        print(f"{key:<32} {value:,.3f}" if isinstance(value, float) else f"{key:<32} {value}")
+        if isinstance(value, list):  # a table: printed by the bench itself
+            print(f"{key:<32} ({len(value)} rows in the JSON)")
+        elif isinstance(value, float):
+            print(f"{key:<32} {value:,.3f}")
+        else:
+            print(f"{key:<32} {value}")
     out = RESULTS / f"{name}.json"
     out.write_text(json.dumps({"benchmark": name, "machine": machine(), **figures}, indent=2))
     print(f"-> {out}")

@@ -1,6 +1,7 @@
 import os
 import subprocess
 import sys
+import zlib
 
 import h5py
 import numpy as np
@@ -239,3 +240,52 @@ def test_not_a_session(tmp_path):
     os.mkdir(tmp_path / "dir.h5")
     with pytest.raises(SessionFormatError, match="folder"):
         Session.open(tmp_path / "dir.h5")
+
+
+@pytest.mark.parametrize("dtype", [np.uint16, np.int64, np.uint8, np.float32])
+def test_the_fast_chunks_hold_what_the_reference_chunks_hold(dtype):
+    """ISA-L's deflate streams (the writer's) and zlib's (the reference) inflate to the same
+    shuffled bytes, and back to the values."""
+    from evcap import chunk_codec
+
+    rng = np.random.default_rng(7)
+    a = np.cumsum(rng.integers(0, 40, 5000)).astype(dtype)
+    fast, reference = chunk_codec.compress(a), chunk_codec.compress_reference(a)
+    assert zlib.decompress(fast) == zlib.decompress(reference) == chunk_codec.shuffled(a).tobytes()
+    np.testing.assert_array_equal(chunk_codec.decompress(fast, dtype, a.shape), a)
+    frame = rng.integers(0, 1024, (1, 7, 9)).astype(np.uint16)
+    np.testing.assert_array_equal(
+        chunk_codec.decompress(chunk_codec.compress(frame), np.uint16, frame.shape), frame
+    )
+
+
+def test_chunks_written_with_zlib_before_read_as_the_new_ones(tmp_path):
+    """Sessions written before ISA-L (chunks made by zlib) and after are one format: a chunk of
+    either kind reads the same through HDF5's own filters."""
+    from evcap import chunk_codec
+
+    t = np.cumsum(np.random.default_rng(2).integers(0, 9, 4096)).astype(np.int64)
+    with h5py.File(tmp_path / "f.h5", "w") as f:
+        for name, compress in (
+            ("old", chunk_codec.compress_reference),
+            ("new", chunk_codec.compress),
+        ):
+            d = f.create_dataset(
+                name, (4096,), np.int64, chunks=(4096,), compression="gzip", shuffle=True
+            )
+            d.id.write_direct_chunk((0,), compress(t))
+    with h5py.File(tmp_path / "f.h5") as f:
+        np.testing.assert_array_equal(f["old"][:], t)
+        np.testing.assert_array_equal(f["new"][:], t)
+
+
+def test_frames_are_chunks_of_the_standard_filters(tmp_path):
+    rng = np.random.default_rng(4)
+    frames = Frames(rng.integers(0, 1024, (5, H, W)), np.arange(5) * 1000, [100] * 5)
+    with SessionWriter(tmp_path / "s.h5", SENSOR) as w:
+        w.append_frames(frames)
+    with h5py.File(tmp_path / "s.h5") as f:  # plain h5py, no evcap
+        d = f["frames/data"]
+        assert d.compression == "gzip" and d.shuffle and d.chunks == (1, H, W)
+        np.testing.assert_array_equal(d[:], frames.data)
+        np.testing.assert_array_equal(f["frames/t"][:], frames.t)

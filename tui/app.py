@@ -20,6 +20,7 @@ from textual.binding import Binding
 from textual.containers import Horizontal, Vertical
 from textual.widgets import Footer, Header
 
+from evcap.acquire.backlog import BehindWatch
 from evcap.acquire.decoder import Decoded
 from evcap.acquire.recorder import (
     NORMAL_ENDS,
@@ -101,6 +102,7 @@ class MonitorApp(App):
         self.free_bytes: int | None = None
         self._free_space = free_space or _free_space
         self.device_dropped = 0
+        self.behind = BehindWatch(clock)  # the backlog and the camera's drops, from Stats
         self.biases = dict(recorder.biases)
         self.recording_path: Path | None = None
         self.last_result = None  # of the last recording that stopped
@@ -207,6 +209,7 @@ class MonitorApp(App):
                 f"● {path.name}",
                 f"{status.duration_s:.1f} s  {size / 1e6:.1f} MB",
                 f"{status.events:,} ev {status.frames:,} fr",
+                f"backlog {si(self.behind.backlog.total_bytes, 'B')}",
             ]
         dropped = update.host_dropped if update is not None else 0
         lines.append(f"dropped dev {self.device_dropped:,} host {dropped:,}")
@@ -220,6 +223,13 @@ class MonitorApp(App):
             warnings.append(f"CAMERA LOST\n  {self.camera_lost}")
         if self.free_bytes is not None and self.free_bytes < DISK_WARNING_BYTES:
             warnings.append(f"disk almost full\n  {si(self.free_bytes, 'B')} free")
+        if self.behind.behind:
+            b = self.behind.backlog
+            warnings.append(
+                f"HOST FALLING BEHIND\n  {si(b.total_bytes, 'B')} waiting ({100 * b.fill:.0f} %)"
+            )
+        if self.behind.new_drops:
+            warnings.append(f"camera dropped {self.behind.new_drops:,}\n  events (last second)")
         if snapshot is not None and snapshot.hot_pixels_dominate:
             share = 100 * snapshot.hot_pixel_share
             warnings.append(f"hot pixels: 0.1 % of the\n  pixels make {share:.0f} % of events")
@@ -276,10 +286,13 @@ class MonitorApp(App):
             self.camera_lost = event.reason
             self._show_panels()
         elif isinstance(event, Stats):
-            self.device_dropped = sum(event.device_dropped.values())
+            self.device_dropped = event.dropped
             self.free_bytes = event.free_bytes
             if self.free_bytes is None:  # not recording: the disk recordings would go to
                 self.free_bytes = self._free_space(self.output_dir)
+            for severity, text in self.behind.update(event.backlog, event.dropped):
+                self.notify(text, severity=severity, timeout=4)
+            self._show_panels()
         elif isinstance(event, RecorderError):
             self.notify(event.message, severity="error")
 

@@ -384,3 +384,54 @@ def test_evcap_record_shows_the_monitor_on_a_terminal(tmp_path):
     assert "60,000 events, 15 frames" in text  # the summary after the app
     with Session.open(out) as s:
         assert s.complete and s.n_events == 60_000
+
+
+def test_the_host_falling_behind_and_the_cameras_drops_are_shown_while_they_happen(
+    tmp_path, monkeypatch
+):
+    """A slow disk (the writer's queue full) and a camera counting drops: the recording panel
+    shows the backlog, the warnings panel says the host is falling behind and how many events
+    the camera dropped, while the recording goes on."""
+    import evcap.acquire.recorder as recorder_module
+    from evcap.acquire import writer_thread
+    from evcap.session import SessionWriter
+
+    slow_append = SessionWriter.append_events
+
+    def slow(self, events):
+        import time
+
+        time.sleep(0.2)
+        slow_append(self, events)
+
+    monkeypatch.setattr(SessionWriter, "append_events", slow)
+    monkeypatch.setattr(writer_thread, "MAX_QUEUED_BYTES", 16 << 10)
+    monkeypatch.setattr(recorder_module, "STATS_INTERVAL_S", 0.05)
+    calls = [0]
+
+    def dropped_counters(self):
+        calls[0] += 1
+        return {"dvs_dropped": 250 * calls[0]}
+
+    monkeypatch.setattr(Davis346, "dropped_counters", dropped_counters)
+    out = tmp_path / "s.h5"
+    cam, app = monitor(idle_copy(tmp_path), 2.0, tmp_path, record_to=out, snapshot_hz=4.0)
+    seen = []
+
+    async def script():
+        async with app.run_test(size=(120, 40)) as pilot:
+            for _ in range(200):
+                await pilot.pause(0.05)
+                text = screen_text(app)
+                if "HOST FALLING BEHIND" in text and "camera dropped 250" in text:
+                    seen.append(text)
+                    break
+            await pilot.press("q")
+            await wait_for(pilot, lambda: not app.is_running, timeout_s=30)
+
+    with cam:
+        run(script)
+    assert seen, "the warnings never showed"
+    assert "backlog" in seen[0] and "events (last second)" in seen[0]
+    with Session.open(out) as s:
+        assert s.complete
