@@ -5,6 +5,7 @@ step as the pipeline does (evcap.pipeline.steps: each step wired once), then say
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from evcap.app.command import Command
 from evcap.app.reconstruct_flags import add_reconstruct_arguments, options_from, show_settings
@@ -149,6 +150,33 @@ def _calibrate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--report", metavar="OUT.png", help="write maps of the calibration")
     p.add_argument("--print-board", metavar="OUT.png", help="write the board as an image to print")
     p.add_argument("--dpi", type=int, default=300, help="--print-board's resolution")
+    p.add_argument(
+        "--intrinsics",
+        metavar="FILE",
+        help="take the intrinsics and distortion from a calibration made with another tool, in "
+        "place of a board: a Kalibr camchain (with its camera-IMU transform and time shift, "
+        "which `evcap poses` then uses), ROS camera_info or VINS YAML, or DV's calibration XML; "
+        "the thresholds, hot pixels and noise are measured from the recording as ever",
+    )
+    p.add_argument(
+        "--camera",
+        metavar="NAME",
+        help="the camera to take of an --intrinsics file holding several: cam0, cam1, ... or "
+        "its name in the file (default: the first, cam0)",
+    )
+    p.add_argument(
+        "--export",
+        metavar="FILE",
+        help="write the session's calibration to FILE.yaml (as --format says) or FILE.xml "
+        "(DV's); alone it measures nothing, after --intrinsics it writes what was imported",
+    )
+    p.add_argument(
+        "--format",
+        choices=["kalibr", "ros", "vins"],
+        help="--export's YAML: kalibr (the default: a camchain, the one that holds both "
+        "distortion models and the camera-IMU transform), ros (camera_info) or vins",
+    )
+    p.add_argument("-f", "--force", action="store_true", help="replace --export's file")
 
 
 def _calibrate(args: argparse.Namespace) -> int:
@@ -165,26 +193,82 @@ def _calibrate(args: argparse.Namespace) -> int:
             return 0
     if args.session is None:
         raise InputError("give the session to calibrate (or only --print-board OUT.png)")
-    from evcap._progress import progress_bar
-    from evcap.pipeline import calibrate_step
+    measure = _calibrate_flags_checked(args)
+    if args.export:
+        from evcap.calib.export import check_export
 
-    targets = [args.session, *(args.apply_to or ())]
-    cal = calibrate_step(
-        args.session,
-        board=board,
-        also=args.apply_to or (),
-        skip=frozenset(args.skip or ()),
-        say=print,
-        progress=progress_bar,
-    )
-    print(cal.summary())
-    print(f"written to /calibration of {', '.join(str(p) for p in targets)}")
-    if args.report:
-        from evcap.calib.report import write_report
+        check_export(args.export, args.format, args.force)  # before minutes of work
+    if measure:
+        from evcap._progress import progress_bar
+        from evcap.pipeline import calibrate_step
 
-        write_report(cal, args.report)
-        print(f"{args.report}: maps of the thresholds, hot pixels and reprojection errors")
+        targets = [args.session, *(args.apply_to or ())]
+        cal = calibrate_step(
+            args.session,
+            board=board,
+            also=args.apply_to or (),
+            skip=frozenset(args.skip or ()),
+            intrinsics=args.intrinsics,
+            camera=args.camera,
+            say=print,
+            progress=progress_bar,
+        )
+        print(cal.summary())
+        print(f"written to /calibration of {', '.join(str(p) for p in targets)}")
+        if args.report:
+            from evcap.calib.report import write_report
+
+            write_report(cal, args.report)
+            print(f"{args.report}: maps of the thresholds, hot pixels and reprojection errors")
+    if args.export:
+        from evcap.calib.export import export_calibration
+        from evcap.importers.calibration_files import FORMATS
+
+        fmt, left_out = export_calibration(
+            args.session, args.export, args.format, overwrite=args.force
+        )
+        print(f"{args.export}: the calibration of {args.session} as a {FORMATS[fmt]}")
+        for part in left_out:
+            print(f"not written: {part}")
     return 0
+
+
+def _calibrate_flags_checked(args: argparse.Namespace) -> bool:
+    """Whether to calibrate (not only --export); InputError for flags that do not go together."""
+    if args.camera and not args.intrinsics:
+        raise InputError("--camera picks a camera of an --intrinsics file: give the file")
+    if args.format and not args.export:
+        raise InputError("--format goes with --export FILE.yaml")
+    if args.intrinsics and args.board:
+        raise InputError(
+            "--board is the board to measure the intrinsics on; --intrinsics takes "
+            "them from a file: give one of them"
+        )
+    if (
+        args.intrinsics
+        and args.export
+        and Path(args.export).resolve() == Path(args.intrinsics).resolve()
+    ):
+        raise InputError(f"--export {args.export} would replace the --intrinsics file itself")
+    if args.export and not args.intrinsics:
+        measuring = [
+            f
+            for f, v in (
+                ("--board", args.board),
+                ("--skip", args.skip),
+                ("--apply-to", args.apply_to),
+                ("--report", args.report),
+            )
+            if v
+        ]
+        if measuring:
+            raise InputError(
+                f"--export alone writes the calibration {args.session} holds; "
+                f"{', '.join(measuring)} measure one: calibrate first, then --export (or "
+                "--intrinsics FILE --export OUT)"
+            )
+        return False
+    return True
 
 
 CALIBRATE = Command(
@@ -192,9 +276,11 @@ CALIBRATE = Command(
     help="measure the sensor: intrinsics, thresholds, hot pixels, noise",
     description="Measure what a recording allows about its sensor and write it to the "
     "session's /calibration: intrinsics and distortion from a ChArUco board in the APS "
-    "frames (or in frames made from the events when there are none), per-pixel ON and OFF "
+    "frames (or in frames made from the events when there are none), or from a calibration "
+    "file of another tool (--intrinsics: Kalibr, ROS, VINS, DV), per-pixel ON and OFF "
     "contrast thresholds from the APS frames against the events, hot pixels, the "
-    "background activity and shot noise rates, and the refractory period.",
+    "background activity and shot noise rates, and the refractory period. --export writes "
+    "the session's calibration for those tools.",
     arguments=_calibrate_arguments,
     run=_calibrate,
 )

@@ -1,6 +1,8 @@
 """`evcap calibrate`: what a recording allows to measure about its sensor (intrinsics and
 distortion, per-pixel contrast thresholds, hot pixels, noise, refractory period), written to
-the session's /calibration group with the biases it was measured under."""
+the session's /calibration group with the biases it was measured under. The intrinsics may come
+from another tool's calibration file instead (`--intrinsics`: Kalibr, ROS, VINS, DV), with the
+camera-IMU transform and time shift where the file has them."""
 
 from __future__ import annotations
 
@@ -14,12 +16,14 @@ from pathlib import Path
 import numpy as np
 
 from evcap.calib.board import DEFAULT_BOARD, Board
+from evcap.calib.camera_imu import camera_imu
 from evcap.calib.intrinsics import IntrinsicsResult, calibrate_intrinsics
 from evcap.calib.noise import NoiseStats, measure_noise
 from evcap.calib.thresholds import DATASHEET_THRESHOLDS, ThresholdFit, fit_thresholds
 from evcap.errors import CalibrationError, InputError
+from evcap.importers.calibration_files import CameraCalibration, check_size
 from evcap.records import Calibration
-from evcap.records.calibration import BoardViews
+from evcap.records.calibration import BoardViews, describe_camera_imu
 from evcap.session import Session
 
 SKIPPABLE = ("intrinsics", "thresholds")  # the noise is always measured: it finds the hot pixels
@@ -53,6 +57,10 @@ class CalibrationRun:
     board: Board | None = None
     biases: dict | None = None  # bias codes in force while recording; None: not recorded
     warnings: list[str] = field(default_factory=list)
+    # the IMU's frame into the camera's (4 x 4, m) and t_imu = t_cam + shift, when known
+    T_cam_imu: np.ndarray | None = None
+    timeshift_cam_imu_us: float = 0.0
+    camera_imu_source: str = ""  # the file they came from, or "kept (...)"
 
     @property
     def rms_reprojection_px(self) -> float:
@@ -89,6 +97,8 @@ class CalibrationRun:
             notes["threshold_confident_share"] = float((t.confidence >= 0.5).mean())
         if self.warnings:
             notes["warnings"] = json.dumps(self.warnings)
+        if self.T_cam_imu is not None:
+            notes["camera_imu_source"] = self.camera_imu_source
         confidence = self.threshold_confidence
         if confidence is None:  # not fitted: no pixel is known well
             confidence = np.zeros((self.height, self.width), np.float32)
@@ -109,29 +119,36 @@ class CalibrationRun:
             refractory_period_us=float(n.refractory_period_us),
             background_activity_hz=float(n.background_activity_hz),
             shot_noise_hz=float(n.shot_noise_hz),
+            T_cam_imu=self.T_cam_imu,
+            timeshift_cam_imu_us=self.timeshift_cam_imu_us,
             notes=notes,
         )
 
     def summary(self) -> str:
         """What was measured, for a person, a few lines."""
         lines = []
-        if self.intrinsics is not None:
-            i, K = self.intrinsics, self.K
+        K, i = self.K, self.intrinsics
+        if K is None:
+            lines.append(f"intrinsics: {self.intrinsics_source}")
+        else:
+            how = f" ({self.intrinsics_source}, {len(i.per_view)} views)" if i else ""
+            line = (
+                f"intrinsics{how or ', ' + self.intrinsics_source}: fx {K[0, 0]:.2f} fy "
+                f"{K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f} px, {self.distortion_model} "
+                f"{' '.join(f'{d:+.4f}' for d in self.dist)}"
+            )
+            lines.append(line + (f"; RMS reprojection {i.rms_px:.3f} px" if i else ""))
+        if i is not None:
             reasons: dict[str, int] = {}
             for _, r in i.rejected:
                 reasons[r.split(" (")[0]] = reasons.get(r.split(" (")[0], 0) + 1
-            lines.append(
-                f"intrinsics ({self.intrinsics_source}, {len(i.per_view)} views): fx {K[0, 0]:.2f} "
-                f"fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f} px, {self.distortion_model} "
-                f"{' '.join(f'{d:+.4f}' for d in self.dist)}; RMS reprojection "
-                f"{i.rms_px:.3f} px"
-            )
             if reasons:
                 lines.append(
                     "  views not used: " + ", ".join(f"{n} {r}" for r, n in reasons.items())
                 )
-        else:
-            lines.append(f"intrinsics: {self.intrinsics_source}")
+        if self.T_cam_imu is not None:
+            relation = describe_camera_imu(self.T_cam_imu, self.timeshift_cam_imu_us)
+            lines.append(f"camera-IMU, {self.camera_imu_source}: {relation}")
         if self.thresholds is not None:
             t = self.thresholds
             means = ", ".join(f"{k} {v[0]:.3f}/{v[1]:.3f}" for k, v in t.channel_means.items())
@@ -146,11 +163,14 @@ class CalibrationRun:
                 f"OFF {self.threshold_off.mean():.3f} log units"
             )
         n = self.noise
-        lines.append(
-            f"hot pixels: {int(n.hot_pixels.sum())}; background activity "
-            f"{n.background_activity_hz:.3g} Hz and shot noise {n.shot_noise_hz:.3g} Hz per "
-            f"pixel; refractory period {n.refractory_period_us:.0f} us"
-        )
+        if n.duration_us == 0:
+            lines.append("hot pixels and noise: not measured")
+        else:
+            lines.append(
+                f"hot pixels: {int(n.hot_pixels.sum())}; background activity "
+                f"{n.background_activity_hz:.3g} Hz and shot noise {n.shot_noise_hz:.3g} Hz "
+                f"per pixel; refractory period {n.refractory_period_us:.0f} us"
+            )
         lines.append("biases: " + ("as recorded in the session" if self.biases else "not recorded"))
         lines += [f"warning: {w}" for w in self.warnings]
         return "\n".join(lines)
@@ -161,31 +181,44 @@ def calibrate(
     *,
     board: Board = DEFAULT_BOARD,
     skip: frozenset[str] = frozenset(),
+    intrinsics: CameraCalibration | None = None,
     say: Callable[[str], None] = lambda line: None,
     progress: Callable[[int, int, str], None] | None = None,
 ) -> CalibrationRun:
     """Measure what the session at ``path`` allows. ``skip``: parts of SKIPPABLE not to measure
-    (what the session's /calibration already holds is kept for them). ``progress(done, total,
-    stage)`` follows the thresholds' fit and the board's detection."""
+    (what the session's /calibration already holds is kept for them). ``intrinsics``: taken
+    from another tool's file (checked against the sensor) instead of measured on a board, with
+    its camera-IMU transform. ``progress(done, total, stage)`` follows the thresholds' fit and
+    the board's detection."""
     report = progress or (lambda done, total, stage: None)
     unknown = set(skip) - set(SKIPPABLE)
     if unknown:
         raise InputError(
             f"cannot skip {sorted(unknown)}; what can be skipped: {', '.join(SKIPPABLE)}"
         )
+    if intrinsics is not None and "intrinsics" in skip:
+        raise InputError(
+            "--intrinsics gives the intrinsics and --skip intrinsics keeps the session's: "
+            "give one of them"
+        )
     with Session.open(path) as s:
         sensor = s.sensor
         events = s.events()
         frames = s.frames()
-        old = _stored(s) if skip else None
+        old = _stored(s, damaged_ok=not skip)
         biases, changed = _biases(s)
     w, h = sensor.width, sensor.height
+    if intrinsics is not None:
+        check_size(intrinsics, w, h, str(path))
+        say(f"intrinsics: {intrinsics.describe()}")
+    warnings = [] if intrinsics is None else list(intrinsics.warnings)
     if len(events) < MIN_EVENTS:
-        raise CalibrationError(
-            f"{path}: {len(events)} events; calibrating the sensor needs at least {MIN_EVENTS:,} "
-            "(record longer, with the camera moving)"
-        )
-    warnings = []
+        if intrinsics is None:
+            raise CalibrationError(
+                f"{path}: {len(events)} events; calibrating the sensor needs at least "
+                f"{MIN_EVENTS:,} (record longer, with the camera moving)"
+            )
+        return _nominal(intrinsics, w, h, len(events), biases, warnings, old)
     if changed:
         warnings.append(
             f"biases changed while recording ({', '.join(changed)}): "
@@ -219,8 +252,11 @@ def calibrate(
         if "thresholds" not in skip:
             warnings.append("no APS frames: the thresholds are not measured per pixel")
 
-    intrinsics = None
-    if "intrinsics" in skip:
+    fitted = None
+    if intrinsics is not None:
+        K, model, dist = intrinsics.K, intrinsics.distortion_model, intrinsics.dist
+        i_source = intrinsics.describe()
+    elif "intrinsics" in skip:
         if old is not None and old.K is not None:
             K, model, dist = old.intrinsics()
             i_source = f"kept ({old.source})"
@@ -239,7 +275,7 @@ def calibrate(
             images, times = _event_images(events, on, off, noise.hot_pixels, board)
             i_source = "event frames"
         try:
-            intrinsics = calibrate_intrinsics(
+            fitted = calibrate_intrinsics(
                 images,
                 times,
                 sensor.color_filter,
@@ -250,8 +286,8 @@ def calibrate(
             raise CalibrationError(
                 f"{e} (to measure only the thresholds, hot pixels and noise: --skip intrinsics)"
             ) from None
-        K, dist, model = intrinsics.K, intrinsics.dist, intrinsics.distortion_model
-        spread = float(np.max(intrinsics.std[:2] / np.diag(K)[:2]))
+        K, dist, model = fitted.K, fitted.dist, fitted.distortion_model
+        spread = float(np.max(fitted.std[:2] / np.diag(K)[:2]))
         if spread > UNCERTAIN_F:
             warnings.append(
                 f"the views leave the focal length uncertain by {spread:.1%}: move the board "
@@ -269,11 +305,51 @@ def calibrate(
         threshold_source=t_source,
         threshold_confidence=confidence,
         noise=noise,
-        intrinsics=intrinsics,
+        intrinsics=fitted,
         thresholds=cal_thresholds,
-        board=board if intrinsics is not None else None,
+        board=board if fitted is not None else None,
         biases=biases,
         warnings=warnings,
+        **camera_imu(intrinsics, old),
+    )
+
+
+def _nominal(
+    intrinsics: CameraCalibration,
+    width: int,
+    height: int,
+    n_events: int,
+    biases: dict | None,
+    warnings: list[str],
+    stored: Calibration | None,
+) -> CalibrationRun:
+    """The file's intrinsics with the datasheet's nominal thresholds, the noise not measured:
+    a recording with too few events to measure the sensor from."""
+    why = f"{n_events} events are too few to measure the sensor (at least {MIN_EVENTS:,})"
+    shape = (height, width)
+    on, off = DATASHEET_THRESHOLDS
+    return CalibrationRun(
+        width=width,
+        height=height,
+        K=intrinsics.K,
+        dist=intrinsics.dist,
+        distortion_model=intrinsics.distortion_model,
+        intrinsics_source=intrinsics.describe(),
+        threshold_on=np.full(shape, on, np.float32),
+        threshold_off=np.full(shape, off, np.float32),
+        threshold_source=f"the datasheet's nominal values (14.3 % ON, 22.5 % OFF): {why}",
+        threshold_confidence=None,
+        noise=NoiseStats(
+            hot_pixels=np.zeros(shape, bool),
+            rate_hz=np.zeros(shape, np.float32),
+            background_activity_hz=0.0,
+            shot_noise_hz=0.0,
+            refractory_period_us=0.0,
+            notes=(f"not measured: {why}",),
+        ),
+        biases=biases,
+        warnings=[*warnings, f"{why}: thresholds nominal, hot pixels and noise not measured"],
+        **camera_imu(intrinsics, stored),
     )
 
 
@@ -315,9 +391,17 @@ def _for_target(path: str | Path, cal: CalibrationRun, record: Calibration) -> C
     return dataclasses.replace(record, notes={**record.notes, "warnings": json.dumps(warnings)})
 
 
-def _stored(s: Session) -> Calibration | None:
-    """The session's /calibration now (kept for the parts not measured), or None."""
-    return Calibration.read(s) if Calibration.present(s) else None
+def _stored(s: Session, damaged_ok: bool = False) -> Calibration | None:
+    """The session's /calibration now (kept for the parts not measured), or None; with
+    ``damaged_ok`` None too when it cannot be read (a new calibration replaces it whole)."""
+    if not Calibration.present(s):
+        return None
+    try:
+        return Calibration.read(s)
+    except InputError:
+        if damaged_ok:
+            return None
+        raise
 
 
 def _biases(s: Session) -> tuple[dict | None, list[str]]:

@@ -4,6 +4,19 @@ from __future__ import annotations
 
 import numpy as np
 
+# calibration files print their rotations to 6 to 17 digits: a matrix further than this from a
+# rotation (rotation_error) is not one
+ROTATION_TOLERANCE = 1e-3
+
+
+def rotation_error(R: np.ndarray) -> float:
+    """How far a 3 x 3 matrix is from a rotation: the largest entry of R^T R - I; infinite
+    when it is not finite or mirrors (determinant <= 0)."""
+    R = np.asarray(R, np.float64)
+    if R.shape != (3, 3) or not np.isfinite(R).all() or np.linalg.det(R) <= 0:
+        return float("inf")
+    return float(np.abs(R.T @ R - np.eye(3)).max())
+
 
 def skew(v: np.ndarray) -> np.ndarray:
     """[..., 3] -> [..., 3, 3] cross-product matrices."""

@@ -13,6 +13,8 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from evcap.errors import InputError
+
 if TYPE_CHECKING:
     from evcap.calib.board import Board
     from evcap.calib.calibrate import CalibrationRun
@@ -40,20 +42,35 @@ def calibrate_step(
     board: Board | None = None,
     also: Iterable[str | Path] = (),
     skip: frozenset[str] = frozenset(),
+    intrinsics: str | Path | None = None,
+    camera: str | None = None,
     say: Say = _silent,
     progress: Progress = no_progress,
 ) -> CalibrationRun:
     """Measure the session's calibration (``board``: the ChArUco board filmed, default the
-    printable one; ``skip``: parts kept as the session holds them) and write it to its
-    /calibration and to that of each session of ``also`` (the same camera and biases); every
-    one of them is checked first, before minutes of work."""
+    printable one; ``skip``: parts kept as the session holds them; ``intrinsics``: another
+    tool's calibration file to take them from instead, ``camera`` the one of a file holding
+    several) and write it to its /calibration and to that of each session of ``also`` (the
+    same camera and biases); every one of them, and the file, is checked first, before
+    minutes of work."""
     from evcap.calib.board import DEFAULT_BOARD
     from evcap.calib.calibrate import calibrate, check_targets, write_calibration
+    from evcap.importers.calibration_files import read_calibration_file
 
+    if camera is not None and intrinsics is None:
+        raise InputError("--camera picks a camera of an --intrinsics file: give the file")
     targets = list(dict.fromkeys(Path(p) for p in (session, *also)))
     check_targets(targets)
+    known = None if intrinsics is None else read_calibration_file(intrinsics, camera)
     with progress("calibrating") as update:
-        cal = calibrate(session, board=board or DEFAULT_BOARD, skip=skip, say=say, progress=update)
+        cal = calibrate(
+            session,
+            board=board or DEFAULT_BOARD,
+            skip=skip,
+            intrinsics=known,
+            say=say,
+            progress=update,
+        )
     write_calibration(targets, cal)
     return cal
 

@@ -12,13 +12,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from evcap.errors import InputError
+from evcap.errors import InputError, PosesError
 from evcap.poses.frames import FrameKind, check_kind, event_frames, frame_rate, memory_us
 from evcap.poses.gravity import Gravity, gravity_up, level, level_rotation
-from evcap.poses.gyro import GyroFit, fit_gyro
+from evcap.poses.gyro import GyroFit, fit_gyro, in_camera_axes
 from evcap.poses.refine import Refined, refine_positions
 from evcap.poses.sfm import SfmResult, run_sfm
 from evcap.records import Calibration, Poses
+from evcap.records.calibration import describe_camera_imu
 from evcap.session import Session
 from evcap.streams import Frames, ImuSamples
 
@@ -33,6 +34,11 @@ APS_MIN_RATE_HZ = 20.0  # without the IMU, the frames' rate stands in for the mo
 # them within this (reprojection, px RMS; on the demo's orbit 2.2 px, the frames' own 1.1):
 # the gyroscope's clock or axes are not the camera's
 MAX_GYRO_REPROJECTION_PX = 5.0
+# an IMU that moved no more than this (99 % of its samples, about their median or mean) was on a
+# camera standing still: the real DAVIS346 recording on a desk reads 0.34 deg/s and 0.09 m/s^2,
+# its sensors' noise; a hand-held camera turns tens of degrees a second
+STILL_GYRO_DEG_S = 2.0
+STILL_ACCEL_M_S2 = 0.3
 
 
 @dataclass
@@ -131,6 +137,13 @@ def estimate_poses(
         events = s.events()
         frames = s.frames()
         imu = s.imu()
+    if len(imu) and cal.T_cam_imu is not None:
+        imu = in_camera_axes(imu, cal.T_cam_imu, cal.timeshift_cam_imu_us)
+        source = cal.notes.get("camera_imu_source", cal.source)
+        say(
+            "IMU turned into the camera's axes and clock by the calibration's camera-IMU "
+            f"transform ({source}): {describe_camera_imu(cal.T_cam_imu, cal.timeshift_cam_imu_us)}"
+        )
     on = cal.threshold_on if cal.threshold_on is not None else 0.2
     off = cal.threshold_off if cal.threshold_off is not None else 0.2
     if len(events) < MIN_EVENTS:
@@ -175,7 +188,13 @@ def estimate_poses(
         write_frames(images, times, export_frames)
         say(f"frames written to {export_frames}")
     say("structure from motion (pycolmap), intrinsics fixed to the calibration")
-    sfm = run_sfm(list(images), times, K, dist, threads=threads, progress=progress)
+    try:
+        sfm = run_sfm(list(images), times, K, dist, threads=threads, progress=progress)
+    except PosesError as e:
+        still = stood_still(imu)
+        if still:
+            raise PosesError(f"{e}; {still}") from None
+        raise
     T_world_cam, up, points = sfm.T_world_cam, None, sfm.points_xyz
     turned, refined = None, None
     if gyro and len(imu) and sfm.observations is not None:
@@ -248,6 +267,21 @@ def aps_frames_usable(frames: Frames, imu: ImuSamples) -> tuple[bool, str]:
     return usable, (
         f"at {rate:.0f} Hz the camera turns {turn:.1f} deg between them "
         f"({'<=' if usable else '>'} {APS_MAX_TURN_DEG:g} deg)"
+    )
+
+
+def stood_still(imu: ImuSamples) -> str:
+    """Why the IMU says the camera stood still, or "" when it moved (or there is no IMU)."""
+    if len(imu) < 50:
+        return ""
+    gyro, accel = np.degrees(imu.gyro.astype(np.float64)), imu.accel.astype(np.float64)
+    turn = float(np.percentile(np.linalg.norm(gyro - np.median(gyro, 0), axis=1), 99))
+    shake = float(np.percentile(np.linalg.norm(accel - accel.mean(0), axis=1), 99))
+    if turn > STILL_GYRO_DEG_S or shake > STILL_ACCEL_M_S2:
+        return ""
+    return (
+        f"the IMU says the camera stood still: it turned at most {turn:.2f} deg/s and its "
+        f"accelerometer varied by {shake:.2f} m/s^2 (99 % of the samples: its sensors' noise)"
     )
 
 

@@ -7,7 +7,12 @@ it gives the orientations up to one rotation (where the world is) and a drift (t
 bias). Both are fitted to the structure from motion's orientations; over a path of many
 frames their errors average out, the gyroscope's shape of the path does not.
 
-The gyroscope is taken in the camera's axes, as the accelerometer is (poses/gravity.py).
+The gyroscope is taken in the camera's axes, as the accelerometer is (poses/gravity.py): the
+session's samples as recorded (the DAVIS346 reports them so, within a degree), or turned by the
+calibration's camera-IMU rotation and moved onto the camera's clock by its time shift when it
+has them (`evcap calibrate --intrinsics` with a Kalibr camchain: ``in_camera_axes``). They are
+held fixed, not fitted again: Kalibr measures them on a target with the camera swept through
+every axis, where a path of event frames gives one rotation a few degrees wrong.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ import numpy as np
 from evcap.errors import InputError
 from evcap.records import Poses
 from evcap.rotations import exp_so3, log_so3
+from evcap.streams import ImuSamples
 
 MIN_SAMPLES = 50
 MIN_FRAMES = 5
@@ -56,6 +62,18 @@ class GyroFit:
             f"{np.degrees(np.linalg.norm(self.bias)):.2f} deg/s; "
             f"{self.disagreement_deg:.2f} deg from the frames', median)"
         )
+
+
+def in_camera_axes(imu: ImuSamples, T_cam_imu: np.ndarray, timeshift_us: float) -> ImuSamples:
+    """``imu`` in the camera's axes (gyroscope and accelerometer turned by T_cam_imu's
+    rotation) and on the camera's clock (t_cam = t_imu - timeshift_us, Kalibr's sign)."""
+    R = np.asarray(T_cam_imu, np.float64)[:3, :3]
+    return ImuSamples(
+        imu.t - int(round(timeshift_us)),
+        imu.accel.astype(np.float64) @ R.T,
+        imu.gyro.astype(np.float64) @ R.T,
+        imu.temperature,
+    )
 
 
 def integrate(t_us: np.ndarray, gyro: np.ndarray, bias: np.ndarray) -> np.ndarray:

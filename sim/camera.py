@@ -2,7 +2,7 @@
 
 Axes are OpenCV's: x right, y down, z forward. Distortion models: "radtan" (plumb_bob:
 k1, k2, p1, p2[, k3]) and "equidistant" (fisheye: k1..k4), as real DAVIS346 calibrations
-give them (ROS camera_info, Kalibr and VINS files).
+give them (ROS camera_info, Kalibr, VINS and DV files).
 """
 
 from __future__ import annotations
@@ -12,63 +12,31 @@ from pathlib import Path
 import numpy as np
 
 from evcap.errors import InputError
+from evcap.importers.calibration_files import read_calibration_file
 from evcap.sim.scene import CameraSpec
 
 
-def _yaml(path: Path) -> dict:
-    import yaml
-
-    text = path.read_text()
-    if text.lstrip().startswith("%YAML:"):  # OpenCV's YAML: drop its directive, keep its data
-        text = text.split("\n", 1)[1]
-    loader = type("Loader", (yaml.SafeLoader,), {})
-    loader.add_constructor(
-        "tag:yaml.org,2002:opencv-matrix", lambda ld, node: ld.construct_mapping(node, deep=True)
-    )
-    try:
-        return yaml.load(text, Loader=loader) or {}
-    except yaml.YAMLError as e:
-        raise InputError(f"{path} is not a calibration file evcap reads: {e}") from None
-
-
-def load_calibration(path: str | Path) -> CameraSpec:
-    """Intrinsics and distortion from a ROS camera_info, Kalibr camchain or VINS YAML file."""
+def load_calibration(path: str | Path, camera: str | None = None) -> CameraSpec:
+    """Intrinsics and distortion from another tool's calibration file (ROS camera_info, Kalibr
+    camchain, VINS, DV's XML: evcap.importers.calibration_files; ``camera`` the one to take of
+    a file holding several) or from an evcap session's /calibration."""
     path = Path(path)
     if path.suffix in (".h5", ".hdf5"):
         return _session_calibration(path)
-    d = _yaml(path)
-    name = path.name
-    if "camera_matrix" in d:  # ROS camera_info
-        k = d["camera_matrix"]["data"]
-        model = {"plumb_bob": "radtan", "equidistant": "equidistant"}.get(d.get("distortion_model"))
-        dist = d.get("distortion_coefficients", {}).get("data", [])
-        fx, fy, cx, cy = k[0], k[4], k[2], k[5]
-        w, h = d["image_width"], d["image_height"]
-    elif "cam0" in d:  # Kalibr
-        c = d["cam0"]
-        fx, fy, cx, cy = c["intrinsics"]
-        model = {"radtan": "radtan", "equidistant": "equidistant"}.get(c.get("distortion_model"))
-        dist = c.get("distortion_coeffs", [])
-        w, h = c["resolution"]
-    elif "projection_parameters" in d:  # VINS
-        p, q = d["projection_parameters"], d.get("distortion_parameters", {})
-        fx, fy, cx, cy = p["fx"], p["fy"], p["cx"], p["cy"]
-        model, dist = "radtan", [q.get("k1", 0), q.get("k2", 0), q.get("p1", 0), q.get("p2", 0)]
-        w, h = d["image_width"], d["image_height"]
-    else:
-        raise InputError(f"{path}: not a ROS camera_info, Kalibr or VINS calibration")
-    if model is None:
-        raise InputError(f"{path}: distortion model not supported (radtan/plumb_bob, equidistant)")
+    cal = read_calibration_file(path, camera)
+    if cal.skew != 0:
+        raise InputError(f"{cal.describe()}: a camera matrix with skew; the simulator has none")
+    K = cal.K
     return CameraSpec(
-        int(w),
-        int(h),
-        float(fx),
-        float(fy),
-        float(cx),
-        float(cy),
-        model,
-        tuple(float(v) for v in dist),
-        source=name,
+        cal.width,
+        cal.height,
+        float(K[0, 0]),
+        float(K[1, 1]),
+        float(K[0, 2]),
+        float(K[1, 2]),
+        cal.distortion_model,
+        tuple(float(v) for v in cal.dist),
+        source=path.name,
     )
 
 

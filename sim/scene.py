@@ -211,12 +211,15 @@ def _resolve(base: Path, value: str, what: str) -> Path:
 
 def _camera(t: Table, base: Path) -> CameraSpec:
     calibration = t.get("calibration", str)
+    camera = t.get("calibration_camera", str)
+    if camera is not None and calibration is None:
+        raise InputError(f"{t.where}: calibration_camera goes with calibration (a file)")
     width = _positive(t.where, "width", t.get("width", int, 346))
     height = _positive(t.where, "height", t.get("height", int, 260))
     if calibration is not None:
         from evcap.sim.camera import load_calibration
 
-        spec = load_calibration(_resolve(base, calibration, f"{t.where}: calibration"))
+        spec = load_calibration(_resolve(base, calibration, f"{t.where}: calibration"), camera)
         t.done()
         return spec
     fx = _positive(t.where, "fx", t.get("fx", float, 250.0))

@@ -83,11 +83,9 @@ def metrics_without_times():
 
 @pytest.fixture(scope="session")
 def davis346_calibrations() -> Path:
-    """Real DAVIS346 calibrations (ROS camera_info and Kalibr files)."""
-    folder = SHARED / "data" / "davis346-calibrations"
-    if not folder.exists():
-        pytest.skip(f"the real DAVIS346 calibrations are not at {folder} (set EVCAP_SHARED)")
-    return folder
+    """Real DAVIS346 calibrations (ROS camera_info, Kalibr and VINS files; tests/data has
+    copies and where they come from)."""
+    return Path(__file__).resolve().parent / "data" / "davis346-calibrations"
 
 
 @pytest.fixture(scope="session")

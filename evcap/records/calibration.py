@@ -13,6 +13,7 @@ import numpy as np
 from evcap.errors import InputError
 from evcap.hdf5_attributes import read_attributes
 from evcap.records._group import Source, array, find_group, optional, path_of, where
+from evcap.rotations import ROTATION_TOLERANCE, log_so3, rotation_error
 from evcap.session import write_group
 
 GROUP = "calibration"
@@ -50,6 +51,10 @@ class Calibration:
     refractory_period_us: float = 0.0
     background_activity_hz: float = 0.0  # leak events per pixel per second
     shot_noise_hz: float = 0.0  # random ON and OFF events per pixel per second
+    # the IMU's frame into the camera's (4 x 4, metres; Kalibr's T_cam_imu) when known, and the
+    # IMU's clock against the camera's: t_imu = t_cam + timeshift_cam_imu_us (Kalibr's sign)
+    T_cam_imu: np.ndarray | None = None
+    timeshift_cam_imu_us: float = 0.0
     notes: dict = field(default_factory=dict)  # more attributes: how each part was measured
 
     def __post_init__(self) -> None:
@@ -62,6 +67,12 @@ class Calibration:
                 setattr(self, name, self._map(name, value, np.float32))
         if self.hot_pixels is not None:
             self.hot_pixels = self._map("hot_pixels", self.hot_pixels, bool)
+        if self.T_cam_imu is not None:
+            self.T_cam_imu = _rigid(
+                np.asarray(self.T_cam_imu, np.float64), "calibration: T_cam_imu"
+            )
+        if not np.isfinite(self.timeshift_cam_imu_us):
+            raise InputError("calibration: timeshift_cam_imu_us must be a finite number")
 
     def _map(self, name: str, value: np.ndarray, dtype) -> np.ndarray:
         m = np.asarray(value, dtype)
@@ -87,8 +98,9 @@ class Calibration:
         if g is None:
             raise InputError(
                 f"{path_of(source)} has no calibration (/{GROUP}): run "
-                "`evcap calibrate` on it, or `evcap calibrate --apply-to` from a calibration "
-                "recording of the same camera"
+                "`evcap calibrate` on it (a ChArUco board filmed in it, or `--intrinsics FILE`: "
+                "the Kalibr, ROS, VINS or DV calibration you have of the camera), or `evcap "
+                "calibrate --apply-to` from a calibration recording of the same camera"
             )
         a = read_attributes(g)
         sensor = getattr(source, "sensor", None)
@@ -130,12 +142,20 @@ class Calibration:
                 array(g, "view_rms_px", place, np.float64, (None,)),
                 array(g, "view_corners", place, np.int64, (None,)),
             )
+        T_cam_imu = optional(g, "T_cam_imu", place, np.float64, (4, 4))
+        if T_cam_imu is not None:
+            _rigid(T_cam_imu, f"{place}/T_cam_imu")
         model = str(a.pop("distortion_model", "none"))
         if model not in DISTORTION_MODELS:
             raise InputError(f"{place}: unknown distortion model {model!r}")
         # older simulated sessions name the reprojection error reprojection_error_px
         rms = a.pop("rms_reprojection_px", a.pop("reprojection_error_px", float("nan")))
-        typed = ("refractory_period_us", "background_activity_hz", "shot_noise_hz")
+        typed = (
+            "refractory_period_us",
+            "background_activity_hz",
+            "shot_noise_hz",
+            "timeshift_cam_imu_us",
+        )
         numbers = {k: float(a.pop(k)) for k in typed if k in a}
         for k in ("width", "height"):
             a.pop(k, None)
@@ -147,6 +167,7 @@ class Calibration:
             distortion_model=model,  # type: ignore[arg-type]
             dist=np.zeros(0) if dist is None else dist,
             views=views,
+            T_cam_imu=T_cam_imu,
             rms_reprojection_px=float(rms),
             notes=a,
             **{k: v for k, v in maps.items() if v is not None},
@@ -157,8 +178,9 @@ class Calibration:
         """(K, distortion model, coefficients); InputError when the intrinsics are unknown."""
         if self.K is None:
             raise InputError(
-                f"{place} has no intrinsics (/{GROUP}/K): run `evcap calibrate` on it, or "
-                "`evcap calibrate --apply-to` from a calibration recording of the same camera"
+                f"{place} has no intrinsics (/{GROUP}/K): run `evcap calibrate` on it (a "
+                "board filmed in it, or `--intrinsics FILE`), or `evcap calibrate --apply-to` "
+                "from a calibration recording of the same camera"
             )
         return self.K, self.distortion_model, self.dist
 
@@ -190,6 +212,8 @@ class Calibration:
                 data[name] = value.astype(np.float32)
         if self.hot_pixels is not None:
             data["hot_pixels"] = self.hot_pixels.astype(np.uint8)
+        if self.T_cam_imu is not None:
+            data["T_cam_imu"] = np.asarray(self.T_cam_imu, np.float64)
         if self.views is not None:
             data["view_t"] = np.asarray(self.views.t_us, np.int64)
             data["view_rms_px"] = np.asarray(self.views.rms_px, np.float64)
@@ -207,9 +231,35 @@ class Calibration:
         }
         if self.hot_pixels is not None:
             attrs["hot_pixel_count"] = int(self.hot_pixels.sum())
+        if self.T_cam_imu is not None:
+            attrs["timeshift_cam_imu_us"] = float(self.timeshift_cam_imu_us)
         write_group(path, GROUP, data, attrs, replace=replace)
 
 
 def read_intrinsics(source: Source) -> tuple[np.ndarray, str, np.ndarray]:
     """(K, distortion model, coefficients) of the source's /calibration, checked."""
     return Calibration.read(source).intrinsics(path_of(source))
+
+
+def describe_camera_imu(T_cam_imu: np.ndarray, timeshift_us: float) -> str:
+    """A camera-IMU transform and time shift for a person: how far the axes turn, how far
+    apart the two are, how the clocks differ."""
+    angle = float(np.degrees(np.linalg.norm(log_so3(T_cam_imu[:3, :3]))))
+    t = ", ".join(f"{v:+.4f}" for v in T_cam_imu[:3, 3])
+    sign = "+" if timeshift_us >= 0 else "-"
+    return (
+        f"the IMU's axes {angle:.2f} deg from the camera's, ({t}) m apart; "
+        f"t_imu = t_cam {sign} {abs(timeshift_us) / 1e3:.3f} ms"
+    )
+
+
+def _rigid(T: np.ndarray, place: str) -> np.ndarray:
+    """``T`` checked a rigid transform (4 x 4: a rotation, a translation, last row 0 0 0 1)."""
+    if (
+        T.shape != (4, 4)
+        or not np.isfinite(T).all()
+        or not np.array_equal(T[3], [0, 0, 0, 1])
+        or rotation_error(T[:3, :3]) > ROTATION_TOLERANCE
+    ):
+        raise InputError(f"{place} is not a rigid transform (4 x 4: a rotation, a translation)")
+    return T

@@ -184,6 +184,30 @@ def test_a_gyroscope_mounted_otherwise_is_refused_on_a_short_path(one_second, mo
         fit_gyro(t, R_frames, imu_t, mounted(gyro))
 
 
+def test_the_calibrations_camera_imu_transform_brings_the_gyroscope_to_the_camera(one_second):
+    """An IMU mounted otherwise, its clock 8 ms ahead: refused as it is; turned and shifted by
+    the calibration's T_cam_imu and time shift (Kalibr's), the fit is the one of a gyroscope
+    in the camera's axes."""
+    from evcap.poses.gyro import in_camera_axes
+    from evcap.streams import ImuSamples
+
+    t, R_frames, _, imu_t, gyro = one_second
+    R_imu_cam = exp_so3(np.radians([10.0, -20.0, 90.0]))
+    shift_us = 8000
+    n = len(imu_t)
+    mounted = ImuSamples(imu_t + shift_us, gyro @ R_imu_cam.T, gyro @ R_imu_cam.T, np.full(n, 25.0))
+    with pytest.raises(InputError, match="camera's axes"):
+        fit_gyro(t, R_frames, mounted.t, mounted.gyro)
+    T_cam_imu = np.eye(4)
+    T_cam_imu[:3, :3] = R_imu_cam.T
+    back = in_camera_axes(mounted, T_cam_imu, shift_us)
+    np.testing.assert_array_equal(back.t, imu_t)
+    np.testing.assert_allclose(back.gyro, gyro, atol=1e-6)  # float32 storage
+    np.testing.assert_allclose(back.accel, gyro, atol=1e-6)
+    fit, direct = fit_gyro(t, R_frames, back.t, back.gyro), fit_gyro(t, R_frames, imu_t, gyro)
+    assert angles_deg(fit.R_world_cam, direct.R_world_cam).max() < 1e-3
+
+
 def test_too_few_gyroscope_samples_are_refused(one_second):
     t, R_frames, _, imu_t, gyro = one_second
     few = np.linspace(0, len(imu_t) - 1, 40).round().astype(int)

@@ -59,6 +59,7 @@ EFFECT = "[sensor.effects]\n{}"
         ({"effects": EFFECT.format("dropped = { probability = 2.0 }")}, "probability must be"),
         ({"effects": EFFECT.format("threshold_spread = { sigma = -1.0 }")}, "sigma must be 0"),
         ({"scene_extra": "max_step_px = 0.0"}, "max_step_px must be positive"),
+        ({"fx": '45.0\ncalibration_camera = "cam1"'}, "calibration_camera goes with calibration"),
         ({"extra": "[gt]\ntest_views = -1"}, "test_views must be 0 or more"),
     ],
 )
@@ -81,5 +82,9 @@ def test_real_calibrations_and_distortion_round_trip(davis346_calibrations):
         v, u = np.mgrid[0 : cam.height, 0 : cam.width]
         np.testing.assert_allclose(uv, np.stack([u.ravel(), v.ravel()], 1), atol=1e-6)
         assert 220 < cam.K[0, 0] < 265 and (cam.width, cam.height) == (346, 260)
-    with pytest.raises(InputError, match="not a ROS camera_info"):
+    with pytest.raises(InputError, match="Kalibr IMU calibration.*no camera in it"):
         load_calibration(davis346_calibrations / "arclab_esvio_kalibr_imu.yaml")
+    right = load_calibration(
+        davis346_calibrations / "arclab_esvio_kalibr_stereo_camchain.yaml", "cam1"
+    )
+    assert right.fx == 258.61441518089174
