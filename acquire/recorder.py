@@ -204,6 +204,7 @@ class Recorder:
         self.decoder: StreamDecoder | None = None
         self.end_reason: EndReason = "stopped"
         self._next_stats = 0.0  # clock time of the next Stats
+        self._disk_low = False  # a Stats read while waiting for the writer found the disk full
 
     # -- requests from other threads -----------------------------------------------------------
 
@@ -362,16 +363,21 @@ class Recorder:
         return stats
 
     def _report_while_waiting(self) -> None:
-        """Called while the writer's queue is full: the monitor goes on, and so do Stats."""
+        """Called while the writer's queue is full: the monitor goes on, and so do Stats (a
+        disk found almost full then is acted on by the main loop, between batches)."""
         if self.on_tick is not None:
             self.on_tick()
         if self._clock() >= self._next_stats and self.device.streaming:
-            self._read_stats()
+            self._disk_low = self._too_little(self._read_stats().free_bytes)
+
+    def _too_little(self, free: int | None) -> bool:
+        return free is not None and free < self.options.min_free_bytes
 
     def _stats(self) -> bool:
         """Read and report the stats; False if the disk is full (the recording is closed)."""
         free = self._read_stats().free_bytes
-        if free is not None and free < self.options.min_free_bytes:
+        self._disk_low = False
+        if self._too_little(free):
             self._close("disk full", f"only {free / 1e6:.0f} MB left on the disk")
             return False
         return True
@@ -397,7 +403,7 @@ class Recorder:
                 if self.on_tick is not None:
                     self.on_tick()
                 now = self._clock()
-                due = now >= self._next_stats and dev.streaming
+                due = (now >= self._next_stats or self._disk_low) and dev.streaming
                 if due and not self._stats() and self.path is not None:
                     self.end_reason = "disk full"
                     break

@@ -119,9 +119,12 @@ class WriterThread:
         self._thread.join()
 
     def close(self, attrs: dict | None = None) -> None:
-        """Append what is queued, then close the session (SessionWriter.close)."""
+        """Append what is queued, then close the session (SessionWriter.close); after a
+        write error, abort it (what was flushed is kept) and raise the error."""
         self._stop()
-        self._raise_error()
+        if self._error is not None:
+            self.writer.abort()
+            raise self._error
         self.writer.close(attrs)
 
     def abort(self) -> None:

@@ -123,6 +123,10 @@ class SessionWriter:
         # chunk offset, the dataset's length once written, the compressed bytes, the rows of
         # other datasets that go in after it: a frame's time and exposure follow its data).
         self._inflight: deque[tuple[str, tuple, int, Future, dict | None]] = deque()
+        # Chunks made and not yet handed over (dataset, offset, length, values, rows): the
+        # counters move first, then these go out; what an interrupt (Ctrl-C) left here goes
+        # out at the next flush, so that a writer closed after one is whole.
+        self._unsent: deque[tuple[str, tuple, int, np.ndarray, dict | None]] = deque()
         try:
             # No chunk cache: every write goes to the file at once, so that nothing is left to
             # flush when a dataset is closed (after a write error that could never succeed).
@@ -248,44 +252,55 @@ class SessionWriter:
                 tail = np.concatenate(self._tail[name])
                 for start in range(0, full, EVENT_CHUNK):
                     first = self._n_chunked + start
-                    self._submit(
-                        f"events/{name}",
-                        (first,),
-                        first + EVENT_CHUNK,
-                        tail[start : start + EVENT_CHUNK],
+                    chunk = tail[start : start + EVENT_CHUNK]
+                    self._unsent.append(
+                        (f"events/{name}", (first,), first + EVENT_CHUNK, chunk, None)
                     )
                 self._tail[name] = [tail[full:]]
             self._tail_n -= full
             self._n_chunked += full
+            self._send()
         self.flush_if_due()
 
+    def _send(self) -> None:
+        """Hand the chunks made to the compressors, in order (see ``_unsent``)."""
+        while self._unsent:
+            self._submit(*self._unsent[0])
+            self._unsent.popleft()
+
     def _submit(self, name: str, offset: tuple, end: int, a: np.ndarray, rows=None) -> None:
-        """Have chunk ``a`` of dataset ``name`` compressed; it is written in its turn."""
+        """Have chunk ``a`` of dataset ``name`` compressed; it is written in its turn (and
+        then ``rows``: {dataset of the same group: values} written from row ``offset[0]``)."""
         self._inflight.append((name, offset, end, self._pool.submit(chunk_codec.compress, a), rows))
         self._write_done(wait_above=MAX_INFLIGHT)
 
     def _write_done(self, wait_above: int) -> None:
-        """Write compressed chunks in order: those ready, and more while over ``wait_above``."""
+        """Write compressed chunks in order: those ready, and more while over ``wait_above``.
+        A chunk leaves the queue once written (each write goes to its own place, so one that
+        an interrupt cut short is made again whole at close)."""
         try:
             while self._inflight and (
                 len(self._inflight) > wait_above or self._inflight[0][3].done()
             ):
-                name, offset, end, future, rows = self._inflight.popleft()
+                name, offset, end, future, rows = self._inflight[0]
                 d = self._ds[name]
                 if d.shape[0] < end:
                     d.resize((end, *d.shape[1:]))
                 d.id.write_direct_chunk(offset, future.result())
                 if rows:
-                    self._write_rows(name.split("/")[0], rows)
+                    self._write_rows(name.split("/")[0], rows, offset[0])
+                self._inflight.popleft()
         except OSError as e:
             raise self._write_error(e) from e
 
-    def _write_rows(self, group: str, columns: dict[str, np.ndarray]) -> None:
+    def _write_rows(self, group: str, columns: dict[str, np.ndarray], at: int | None = None):
+        """``columns`` written from row ``at`` of their datasets (default: appended)."""
         for name, values in columns.items():
             d = self._ds[f"{group}/{name}"]
-            n = d.shape[0]
-            d.resize((n + values.shape[0], *d.shape[1:]))
-            d[n:] = values
+            n = d.shape[0] if at is None else at
+            if d.shape[0] < n + values.shape[0]:
+                d.resize((n + values.shape[0], *d.shape[1:]))
+            d[n : n + values.shape[0]] = values
 
     def _append_rows(self, group: str, columns: dict[str, np.ndarray]) -> None:
         try:
@@ -310,7 +325,8 @@ class SessionWriter:
             rows = {"t": frames.t[i : i + 1], "exposure_us": frames.exposure_us[i : i + 1]}
             n = self._n_frames
             self._n_frames += 1
-            self._submit("frames/data", (n, 0, 0), n + 1, frames.data[i : i + 1], rows)
+            self._unsent.append(("frames/data", (n, 0, 0), n + 1, frames.data[i : i + 1], rows))
+        self._send()
         self.flush_if_due()
 
     def append_imu(self, imu: ImuSamples) -> None:
@@ -359,6 +375,7 @@ class SessionWriter:
 
     def flush(self) -> None:
         """Write everything appended so far to the file, so that a crash keeps it."""
+        self._send()
         self._write_done(wait_above=0)
         try:
             tail = self._tail_n

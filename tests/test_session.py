@@ -289,3 +289,43 @@ def test_frames_are_chunks_of_the_standard_filters(tmp_path):
         assert d.compression == "gzip" and d.shuffle and d.chunks == (1, H, W)
         np.testing.assert_array_equal(d[:], frames.data)
         np.testing.assert_array_equal(f["frames/t"][:], frames.t)
+
+
+@pytest.mark.parametrize("kind", ["events", "frames"])
+def test_ctrl_c_while_a_chunk_is_written_leaves_a_whole_session(tmp_path, monkeypatch, kind):
+    """Ctrl-C lands where the writer waits for a compressed chunk: the writer still closes
+    (Ctrl-C keeps what was appended) and the session holds all of it."""
+    from concurrent.futures import Future
+
+    result, calls = Future.result, [0]
+
+    def interrupted_once(self, timeout=None):
+        calls[0] += 1
+        if calls[0] == 3:
+            raise KeyboardInterrupt
+        return result(self, timeout)
+
+    monkeypatch.setattr(Future, "result", interrupted_once)
+    rng = np.random.default_rng(0)
+    n = 24 * EVENT_CHUNK  # past the compressors' queue: appending waits for chunks
+    x, y = rng.integers(0, W, n), rng.integers(0, H, n)
+    events = Events(x, y, np.arange(n), [1] * n, W, H, "RGBG")
+    frames = Frames(rng.integers(0, 1024, (30, H, W)), np.arange(30) * 1000, [10] * 30)
+    appended = 0
+    with pytest.raises(KeyboardInterrupt), SessionWriter(tmp_path / "s.h5", SENSOR) as w:
+        if kind == "events":
+            w.append_events(events)
+        else:
+            for i in range(len(frames)):
+                appended = i + 1  # the frame being appended when Ctrl-C came is kept
+                w.append_frames(Frames(frames.data[i : i + 1], frames.t[i : i + 1], [10]))
+    monkeypatch.setattr(Future, "result", result)
+    with Session.open(tmp_path / "s.h5") as s:
+        assert s.complete
+        if kind == "events":
+            np.testing.assert_array_equal(s.events().t, events.t)
+            np.testing.assert_array_equal(s.events().x, events.x)
+        else:
+            assert 0 < appended < 30  # Ctrl-C came while frames were being written
+            np.testing.assert_array_equal(s.frames().data, frames.data[:appended])
+            np.testing.assert_array_equal(s.frames().t, frames.t[:appended])

@@ -12,6 +12,7 @@ from evcap.acquire import writer_thread
 from evcap.acquire.backlog import Backlog, BehindWatch
 from evcap.acquire.device import Davis346, DeviceSpec
 from evcap.acquire.recorder import Recorder, Stats
+from evcap.errors import DiskFullError
 from evcap.session import Session, SessionWriter
 
 FIXTURES = Path(__file__).resolve().parents[2] / "hw-fixtures"
@@ -133,3 +134,22 @@ def test_the_warnings_go_over_the_status_line_on_a_terminal(capsys, tty):
         f"{prefix}warning: the camera dropped 5 events in the last second (5 since it started): "
         "the host or the USB link is not keeping up",
     ]
+
+
+def test_a_full_disk_found_while_waiting_for_the_writer_stops_the_recording(tmp_path, monkeypatch):
+    """The recorder spends its time waiting for a slow writer, and reads the Stats there: a
+    disk found almost full then still ends the recording, as "disk full", at once."""
+    slow_disk(monkeypatch, seconds=0.1)
+    reads = [0]
+
+    def free_bytes(self):
+        reads[0] += 1
+        return (10 << 20) if reads[0] > 3 else (10 << 30)
+
+    monkeypatch.setattr(SessionWriter, "free_bytes", free_bytes)
+    spec = DeviceSpec("replay", path=FIXTURES / "color-scene", speed=1.0)
+    with Davis346.open(spec) as cam, pytest.raises(DiskFullError, match="MB left on the disk"):
+        Recorder(cam, tmp_path / "s.h5").run()
+    with Session.open(tmp_path / "s.h5") as s:
+        # stopped at the Stats that found it (before: nearly all of the 60,000 events went in)
+        assert s.complete and 0 < s.n_events < 30_000

@@ -108,6 +108,18 @@ def test_a_write_error_reaches_the_recorder_and_ends_the_thread():
     assert writer.events == [0, 1000] and writer.aborted and not writer.closed
 
 
+def test_an_error_found_at_close_aborts_the_session():
+    """The write error comes with the last batch, so the recorder first hears of it when it
+    closes: the session is aborted (what was flushed kept, the file let go), and it is said."""
+    writer = SlowWriter(fail_at=2)
+    thread = WriterThread(writer)
+    for k in range(3):
+        thread.put(batch(k * 1000))
+    with pytest.raises(SessionWriteError, match="disk is full"):
+        thread.close()
+    assert writer.aborted and not writer.closed
+
+
 def test_abort_leaves_what_is_queued():
     writer = SlowWriter(seconds=0.1)
     thread = WriterThread(writer)
