@@ -197,7 +197,8 @@ def _calibrate(args: argparse.Namespace) -> int:
     if args.export:
         from evcap.calib.export import check_export
 
-        check_export(args.export, args.format, args.force)  # before minutes of work
+        # before minutes of work (and before the session's calibration is replaced)
+        check_export(args.export, args.format, args.force, args.intrinsics, args.camera)
     if measure:
         from evcap._progress import progress_bar
         from evcap.pipeline import calibrate_step

@@ -10,17 +10,28 @@ from evcap.errors import OutputExistsError
 from evcap.importers.calibration_files import (
     CameraCalibration,
     export_format,
+    read_calibration_file,
+    render_calibration,
     write_calibration_file,
 )
 from evcap.records import Calibration
 from evcap.session import SensorInfo, Session
 
 
-def check_export(path: str | Path, fmt: str | None, overwrite: bool) -> str:
-    """The format ``path`` will be written in; InputError before any work when it cannot be."""
+def check_export(
+    path: str | Path,
+    fmt: str | None,
+    overwrite: bool,
+    intrinsics: str | Path | None = None,
+    camera: str | None = None,
+) -> str:
+    """The format ``path`` will be written in; InputError before any work when it cannot be
+    (with ``intrinsics``, the file to be imported first: when the format cannot hold it)."""
     chosen = export_format(path, fmt)
     if Path(path).exists() and not overwrite:
         raise OutputExistsError(f"{path} exists: give --force to replace it")
+    if intrinsics is not None:
+        render_calibration(read_calibration_file(intrinsics, camera), chosen, "camera")
     return chosen
 
 

@@ -28,12 +28,29 @@ KEYS = "camera_matrix, distortion_coefficients, image_width, image_height"
 def read(path: Path, source: str, camera: str | None) -> CameraCalibration:
     import cv2
 
+    if b"<opencv_storage>" not in path.read_bytes()[:4096]:  # before OpenCV's own messages
+        raise InputError(
+            f"{source} is not DV's calibration XML (an <opencv_storage> document, as OpenCV "
+            "writes it, with an element per camera)"
+        )
+    try:
+        return _read(path, source, camera)
+    except (cv2.error, SystemError) as e:  # OpenCV's errors come wrapped in SystemError too
+        cause = e.__cause__ or e.__context__ or e
+        raise InputError(
+            f"{source}: its elements are not as DV writes them (OpenCV: {_reason(cause)})"
+        ) from None
+
+
+def _read(path: Path, source: str, camera: str | None) -> CameraCalibration:
+    import cv2
+
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_FORMAT_XML)
     except (cv2.error, SystemError) as e:  # OpenCV's parse errors come wrapped in SystemError
         cause = e.__cause__ or e.__context__ or e
         raise InputError(
-            f"{source} is not an XML calibration OpenCV reads: {_first_line(cause)}"
+            f"{source} is not an XML calibration OpenCV reads: {_reason(cause)}"
         ) from None
     try:
         if not fs.isOpened():
@@ -128,7 +145,14 @@ def _has(node, key: str) -> bool:
 
 
 def _matrix(node, key: str, source: str) -> np.ndarray:
-    m = node.getNode(key).mat()
+    import cv2
+
+    try:
+        m = node.getNode(key).mat()
+    except (cv2.error, SystemError):
+        raise InputError(
+            f"{source}: {key} is not a valid opencv-matrix (its rows x cols must match its data)"
+        ) from None
     if m is None:
         raise InputError(f"{source}: {key} is not an opencv-matrix (rows, cols, dt, data)")
     return np.asarray(m, np.float64)
@@ -142,6 +166,12 @@ def _text(node, key: str) -> str:
 def _integer(node, key: str) -> float | None:
     n = node.getNode(key)
     return None if n.empty() or not (n.isInt() or n.isReal()) else n.real()
+
+
+def _reason(e: Exception) -> str:
+    """OpenCV's message without its version, source file and line."""
+    text = _first_line(e)
+    return re.sub(r"^OpenCV\([^)]*\) \S+: error: \([^)]*\) ", "", text)
 
 
 def _first_line(e: Exception) -> str:

@@ -31,6 +31,7 @@ __all__ = [
     "check_size",
     "export_format",
     "read_calibration_file",
+    "render_calibration",
     "write_calibration_file",
 ]
 
@@ -112,6 +113,14 @@ def write_calibration_file(
     fmt = export_format(path, fmt)
     if Path(path).exists() and not overwrite:
         raise OutputExistsError(f"{path} exists: give --force to replace it")
+    text, left_out = render_calibration(cal, fmt, name)
+    write_text_atomic(path, text)
+    return fmt, left_out
+
+
+def render_calibration(cal: CameraCalibration, fmt: str, name: str) -> tuple[str, list[str]]:
+    """``cal`` as the text of a ``fmt`` file, and what of it the format has no place for;
+    InputError naming the way out when the format cannot hold it."""
     left_out = []
     if cal.skew != 0 and fmt in ("kalibr", "vins"):
         raise InputError(
@@ -130,8 +139,7 @@ def write_calibration_file(
         text = _calibration_vins.write(cal, name)
     else:
         text = _calibration_dv.write(cal, name)
-    write_text_atomic(path, text)
-    return fmt, left_out
+    return text, left_out
 
 
 def load_yaml(path: Path) -> object:
@@ -152,7 +160,12 @@ def load_yaml(path: Path) -> object:
     try:
         return yaml.load(text, Loader=loader)  # noqa: S506 (a SafeLoader)
     except yaml.YAMLError as e:
-        raise InputError(f"{path.name} is not YAML evcap can read ({EXPECTED}): {e}") from None
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+        raise InputError(
+            f"{path.name} is not YAML evcap can read ({problem}{where}); expected {EXPECTED}"
+        ) from None
 
 
 def _from_yaml(path: Path, doc: object, camera: str | None) -> CameraCalibration:

@@ -175,6 +175,12 @@ def test_a_davis346_calibration_on_another_sensor_is_refused(session, capsys):
 
 
 def test_flags_that_do_not_go_together(session, camchain, tmp_path, capsys):
+    k3 = tmp_path / "k3.yaml"
+    k3.write_text(  # ROS camera_info with a k3, which Kalibr's radtan cannot hold
+        "image_width: 346\nimage_height: 260\ndistortion_model: plumb_bob\n"
+        "camera_matrix: {rows: 3, cols: 3, data: [250, 0, 173, 0, 250, 130, 0, 0, 1]}\n"
+        "distortion_coefficients: {rows: 1, cols: 5, data: [-0.3, 0.1, 0, 0, 0.01]}\n"
+    )
     cases = [
         (["--camera", "cam1"], "--camera picks a camera of an --intrinsics file"),
         (["--format", "ros"], "--format goes with --export"),
@@ -191,6 +197,8 @@ def test_flags_that_do_not_go_together(session, camchain, tmp_path, capsys):
         (["--export", str(tmp_path / "a.yaml")], "has no calibration"),  # none yet
         (["--intrinsics", str(DATA / "arclab_esvio_kalibr_imu.yaml")], "Kalibr IMU calibration"),
         (["--intrinsics", str(tmp_path / "none.yaml")], "none.yaml: no such file"),
+        # what --export cannot write is said before the session's calibration is replaced
+        (["--intrinsics", str(k3), "--export", str(tmp_path / "k.yaml")], "k3 is 0.01"),
     ]
     for flags, message in cases:
         assert main(["calibrate", str(session), *flags]) == 2, flags
