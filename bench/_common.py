@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import os
 import platform
+import subprocess
+import tempfile
 from pathlib import Path
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -101,3 +103,14 @@ def session_of(scene: str) -> Path:
         print(f"simulating {scene} (once) ...", flush=True)
         simulate(load_scene(scene_file(scene)), path)
     return path
+
+
+def export_commit(ref: str, root: Path) -> tempfile.TemporaryDirectory:
+    """The tree of commit ``ref`` of the repository at ``root``, in a temporary folder (a
+    baseline's code, measured beside this checkout's)."""
+    folder = tempfile.TemporaryDirectory()
+    tree = subprocess.run(
+        ["git", "-C", str(root), "archive", ref], check=True, capture_output=True
+    ).stdout
+    subprocess.run(["tar", "-x", "-C", folder.name], input=tree, check=True)
+    return folder

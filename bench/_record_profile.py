@@ -16,7 +16,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections import Counter
@@ -211,13 +210,3 @@ def busy_cores(n: int):
         for p in procs:
             p.kill()
             p.wait()
-
-
-def export_commit(ref: str, root: Path) -> tempfile.TemporaryDirectory:
-    """The tree of commit ``ref`` of the repository at ``root``, in a temporary folder."""
-    folder = tempfile.TemporaryDirectory()
-    tree = subprocess.run(
-        ["git", "-C", str(root), "archive", ref], check=True, capture_output=True
-    ).stdout
-    subprocess.run(["tar", "-x", "-C", folder.name], input=tree, check=True)
-    return folder

@@ -9,10 +9,12 @@ at random for the 5k rows. The method's scale (100k Gaussians at 800 x 800) has 
 here: a synthetic field stands for it, half flattened on a sphere's surface, half through the
 volume around it, about 1.5 render pixels across, opacities 0.05 to 0.95. The backward pass
 takes a fixed random weighting of every output (color, depth, alpha, normals). The runs take
-turns, round after round, and each figure is the fastest of its rounds.
+turns, round after round, and each figure is the fastest of its rounds. ``--baseline REF``
+times commit REF's compiled rasterizer too, in a process of its own, taking its turn in every
+round (bench/_raster_timing.py), on the same Gaussians and views.
 
     .venv/bin/python bench/rasterizer.py [--quick] [--repeats N] [--scene S] [--preset P]
-        [--iterations N] [--scale X]
+        [--iterations N] [--scale X] [--baseline REF]
 """
 
 from __future__ import annotations
@@ -21,18 +23,20 @@ import argparse
 import functools
 import math
 import statistics
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from _common import RESULTS, flag_settings, report, scene_label, session_of
+from _common import RESULTS, export_commit, flag_settings, report, scene_label, session_of
+from _raster_timing import BaselineRasterizer, time_once
 
 from evcap.recon.export import load_checkpoint
-from evcap.recon.raster.rasterize import Camera, rasterize
 from evcap.recon.scene.optics import SensorOptics
 from evcap.records import GroundTruth, ReconstructionFolder
 from evcap.session import Session
+
+ROOT = Path(__file__).resolve().parent.parent
+BASELINE = "cpu at the baseline"  # the backend column of the baseline's rows
 
 # (field, width, height, Gaussians, channels): the fast preset's size, the sensor's, the method's
 CONFIGS = [
@@ -90,7 +94,7 @@ def trained(
         g.opacities.detach()[keep],
         colors,
     ]
-    return params, Camera(view, K, width, height)
+    return params, (view, K, width, height)
 
 
 def synthetic(n: int, width: int, height: int, channels: int, seed: int = 0):
@@ -111,30 +115,7 @@ def synthetic(n: int, width: int, height: int, channels: int, seed: int = 0):
     view[2, 3] = distance
     K = torch.tensor([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]])
     params = [means, quats, log_scales, opacities, features]
-    return params, Camera(view, K, width, height)
-
-
-def time_once(backend, params, cam, weights, device="cpu"):
-    """(forward, forward+backward) seconds of one view, and its mean alpha; ``weights`` [H, W,
-    D + 5] weigh the outputs in the loss the backward pass starts from."""
-    params = [p.detach().to(device).requires_grad_(True) for p in params]
-    cam = Camera(cam.viewmat.to(device), cam.K.to(device), cam.width, cam.height)
-    weights = weights.to(device)
-    means, quats, log_scales, opacities, features = params
-    sync(device)
-    start = time.perf_counter()
-    r = rasterize(means, quats, log_scales.exp(), opacities, features, cam, backend=backend)
-    sync(device)
-    mid = time.perf_counter()
-    maps = torch.cat([r.color, r.depth[..., None], r.alpha[..., None], r.normal], -1)
-    (maps * weights).sum().backward()
-    sync(device)
-    return mid - start, time.perf_counter() - start, float(r.alpha.detach().mean())
-
-
-def sync(device: str) -> None:
-    if device == "cuda":
-        torch.cuda.synchronize()
+    return params, (view, K, width, height)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -145,7 +126,21 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--preset", default="fast", help="the trained field's preset")
     parser.add_argument("--iterations", type=int, help="the trained field's steps (preset's)")
     parser.add_argument("--scale", type=float, default=1.0, help="every row's image size times")
+    parser.add_argument("--baseline", help="a git commit whose rasterizer is timed beside")
+    parser.add_argument("--baseline-code", type=Path, help=argparse.SUPPRESS)  # a checkout
     args = parser.parse_args(argv)
+    exported = export_commit(args.baseline, ROOT) if args.baseline else None
+    code = Path(exported.name) if exported else args.baseline_code
+    try:
+        rows = _rows(args, code)
+    finally:
+        if exported is not None:
+            exported.cleanup()
+    report("rasterizer", {**_figures(rows), "baseline": args.baseline, "rows": rows})
+
+
+def _rows(args: argparse.Namespace, code: Path | None) -> list[dict]:
+    """Every configuration's row per run (backend, threads; the baseline's code)."""
     fields = {
         "trained": functools.partial(
             trained, scene=args.scene, preset=args.preset, iterations=args.iterations
@@ -164,24 +159,31 @@ def main(argv: list[str] | None = None) -> None:
 
         gsplat = _raster_gsplat.available()
     rows = []
+    baseline = BaselineRasterizer(code) if code is not None else None
     for field, width, height, n, channels in configs:
-        params, cam = fields[field](n, width, height, channels)
+        params, view = fields[field](n, width, height, channels)
         n = len(params[0])
         # the torch backend takes seconds a view at the largest size: fewer repeats there
         repeats = args.repeats if width * height * n < 1e10 else 3
         runs = [("cpu", "cpu", t) for t in (1, 2)] + [("torch", "cpu", t) for t in (1, 2)]
         runs += [("gsplat", "cuda", None)] if gsplat else []
+        runs += [(BASELINE, "cpu", t) for t in (1, 2)] if baseline else []
         times: dict = {run: [] for run in runs}
         g = torch.Generator().manual_seed(1)
         weights = torch.rand(height, width, channels + 5, generator=g)
+        if baseline:
+            baseline.load(params, view, weights)
         # round by round, so that a slow moment of the machine falls on every run alike;
         # the first round compiles (or loads the cached build) and is not counted
         for round_ in range(repeats + 1):
             for run in runs:
                 backend, device, threads = run
-                if threads:
-                    torch.set_num_threads(threads)
-                fwd, total, alpha = time_once(backend, params, cam, weights, device)
+                if backend == BASELINE:
+                    fwd, total, alpha = baseline.time_once(threads)
+                else:
+                    if threads:
+                        torch.set_num_threads(threads)
+                    fwd, total, alpha = time_once(backend, params, view, weights, device)
                 if round_:
                     times[run].append((fwd, total))
         for (backend, device, threads), measured in times.items():
@@ -209,6 +211,14 @@ def main(argv: list[str] | None = None) -> None:
                 flush=True,
             )
     torch.set_num_threads(threads_before)
+    if baseline:
+        baseline.close()
+    return rows
+
+
+def _figures(rows: list[dict]) -> dict:
+    """The compiled backend on 2 threads against the torch one, itself on 1 thread, and the
+    baseline's compiled backend (where it ran), per configuration."""
 
     def timing(config, backend, threads, key):
         return next(
@@ -219,6 +229,7 @@ def main(argv: list[str] | None = None) -> None:
             and r["threads"] == threads
         )
 
+    baseline = any(r["backend"] == BASELINE for r in rows)
     figures: dict = {}
     for row in rows:
         if row["backend"] != "cpu" or row["threads"] != 2:
@@ -230,7 +241,13 @@ def main(argv: list[str] | None = None) -> None:
             torch_ms, cpu_ms = timing(config, "torch", 2, key), timing(config, "cpu", 2, key)
             figures[f"{name}_cpu_vs_torch_2_threads{label}"] = torch_ms / cpu_ms
             figures[f"{name}_cpu_2_vs_1_thread{label}"] = timing(config, "cpu", 1, key) / cpu_ms
-    report("rasterizer", {**figures, "rows": rows})
+            if baseline:  # how many times faster than the baseline's, each on 2 threads
+                before = timing(config, BASELINE, 2, key)
+                figures[f"{name}_cpu_vs_baseline_2_threads{label}"] = before / cpu_ms
+        if baseline:
+            before = timing(config, BASELINE, 2, "forward_ms")
+            figures[f"{name}_cpu_vs_baseline_2_threads_forward"] = before / row["forward_ms"]
+    return figures
 
 
 if __name__ == "__main__":

@@ -27,9 +27,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import markdown_table, report
+from _common import export_commit, markdown_table, report
 from _event_codecs import compare
-from _record_profile import busy_cores, export_commit, profile, profile_in_child
+from _record_profile import busy_cores, profile, profile_in_child
 from _streams import dense_events, dense_stream
 
 from evcap.acquire.device import Davis346

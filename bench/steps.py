@@ -244,13 +244,15 @@ def _configs(args: argparse.Namespace) -> tuple:
 
 def run_baseline(args: argparse.Namespace) -> dict:
     """The same measurement on commit ``args.baseline``, in a fresh process."""
-    with tempfile.TemporaryDirectory() as folder:
-        tree = subprocess.run(
-            ["git", "-C", str(ROOT), "archive", args.baseline], check=True, capture_output=True
-        ).stdout
-        subprocess.run(["tar", "-x", "-C", folder], input=tree, check=True)
-        command = [sys.executable, __file__, "--code", folder, "--json-only", *_forwarded(args)]
+    from _common import export_commit
+
+    folder = export_commit(args.baseline, ROOT)
+    try:
+        command = [sys.executable, __file__, "--code", folder.name, "--json-only"]
+        command += _forwarded(args)
         done = subprocess.run(command, check=True, capture_output=True, text=True)
+    finally:
+        folder.cleanup()
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 

@@ -162,6 +162,26 @@ def test_steps_runs_another_checkout_in_a_process_of_its_own(session):
     assert figures["code"] == str(root)  # the tree's recon/, as its pyproject.toml maps it
 
 
+def test_rasterizer_times_another_checkout_beside_this_one(session, monkeypatch, tmp_path):
+    """`--baseline`: another checkout's compiled rasterizer in a process of its own, taking its
+    turn in every round (here this checkout's own tree, as an exported commit's would be)."""
+    import _common
+    import rasterizer
+
+    monkeypatch.setattr(_common, "RESULTS", tmp_path)
+    monkeypatch.setattr(rasterizer, "RESULTS", tmp_path)
+    args = [arg.format(session=session) for arg in TINY["rasterizer"]]
+    rasterizer.main([*args, "--baseline-code", str(BENCH.parent)])
+    doc = json.loads((tmp_path / "rasterizer.json").read_text())
+    ratios = [v for k, v in doc.items() if k.endswith("_cpu_vs_baseline_2_threads")]
+    assert ratios and all(r > 0 for r in ratios)
+    before = [r for r in doc["rows"] if r["backend"] == rasterizer.BASELINE]
+    this = [r for r in doc["rows"] if r["backend"] == "cpu"]
+    assert len(before) == len(this) == 6  # 3 configurations, 1 and 2 threads
+    # the same code on the same view: the same picture
+    assert [r["mean_alpha"] for r in before] == [r["mean_alpha"] for r in this]
+
+
 def test_paper_table_scores_both_stages_on_every_held_out_view(nerf_scene, monkeypatch, tmp_path):
     import paper_table
 
