@@ -81,7 +81,7 @@ class BaselineRasterizer:
 
     def load(self, params, view, weights) -> None:
         """The view the next rounds time."""
-        path = Path(self._folder.name) / "view.pt"
+        path = Path(self._folder.name) / "view.torch"  # read once by the other process
         torch.save({"params": params, "view": view, "weights": weights}, path)
         self._ask({"load": str(path)})
 

@@ -48,8 +48,6 @@ TINY = {
     "mesh": ["{surface}", "--views", "8", "--texture-size", "128", "--resolution", "0.03"]
     + ["--samples", "20000"],
     "poses": ["--scenes", "{board}"],
-    "rasterizer": ["--quick", "--repeats", "1", "--scene", "{session}", "--preset", "tiny"]
-    + ["--iterations", "5", "--scale", "0.25"],
     "robustness": ["--scenes", "{scene}", "--preset", "tiny", "--iterations", "5"]
     + ["--material-iterations", "2", "--rows", "davis346, uncalibrated"]
     + ["davis346, bound and noise rates", "pose noise 2 deg", "dim light, noise filter 5 ms"],
@@ -60,7 +58,7 @@ TINY = {
     "sim_throughput": ["--seconds", "0.02", "--size", "48x36", "--scenes", "single_object"],
     "tui_refresh": ["--seconds", "0.3", "--size", "80x24"],
 }
-OWN_TESTS = {"steps", "paper_table"}
+OWN_TESTS = {"steps", "paper_table", "rasterizer"}
 
 
 def test_every_bench_has_a_tiny_run():
@@ -163,16 +161,19 @@ def test_steps_runs_another_checkout_in_a_process_of_its_own(session):
 
 
 def test_rasterizer_times_another_checkout_beside_this_one(session, monkeypatch, tmp_path):
-    """`--baseline`: another checkout's compiled rasterizer in a process of its own, taking its
-    turn in every round (here this checkout's own tree, as an exported commit's would be)."""
+    """The rasterizer bench at a tiny size, with `--baseline`: another checkout's compiled
+    rasterizer in a process of its own, taking its turn in every round (here this checkout's
+    own tree, as an exported commit's would be)."""
     import _common
     import rasterizer
 
     monkeypatch.setattr(_common, "RESULTS", tmp_path)
     monkeypatch.setattr(rasterizer, "RESULTS", tmp_path)
-    args = [arg.format(session=session) for arg in TINY["rasterizer"]]
-    rasterizer.main([*args, "--baseline-code", str(BENCH.parent)])
+    args = ["--quick", "--repeats", "1", "--scene", str(session), "--preset", "tiny"]
+    args += ["--iterations", "5", "--scale", "0.25", "--baseline-code", str(BENCH.parent)]
+    rasterizer.main(args)
     doc = json.loads((tmp_path / "rasterizer.json").read_text())
+    assert doc["machine"]
     ratios = [v for k, v in doc.items() if k.endswith("_cpu_vs_baseline_2_threads")]
     assert ratios and all(r > 0 for r in ratios)
     before = [r for r in doc["rows"] if r["backend"] == rasterizer.BASELINE]
