@@ -22,7 +22,7 @@ import numba
 import numpy as np
 
 from evcap.events import Events
-from evcap.streams import Frames, ImuSamples, TriggerKind, Triggers
+from evcap.streams import LIBCAER_TO_CAMERA, Frames, ImuSamples, TriggerKind, Triggers
 
 STANDARD_GRAVITY = 9.80665
 # The most wraps (32.768 ms each) one wrap word may carry: a running DAVIS346 sends words all
@@ -455,6 +455,12 @@ class Decoded:
     triggers: Triggers
 
 
+def imu_signs(flip: tuple[bool, bool, bool]) -> np.ndarray:
+    """The sign of each axis from the IMU's registers to the camera's axes: the device's
+    orientation flips, then libcaer's axes into the camera's (evcap.streams.LIBCAER_TO_CAMERA)."""
+    return np.where(np.asarray(flip), -1.0, 1.0) * LIBCAER_TO_CAMERA
+
+
 def imu_physical(
     raw: np.ndarray, cfg: np.ndarray, imu_type: int, flip: tuple[bool, bool, bool]
 ) -> tuple[np.ndarray, ...]:
@@ -470,7 +476,7 @@ def imu_physical(
         temperature = values[:, 3] / 333.87 + 21.0
     else:
         temperature = values[:, 3] / 340.0 + 35.0
-    sign = np.where(np.asarray(flip), -1.0, 1.0)
+    sign = imu_signs(flip)
     accel, gyro = accel * sign, gyro * sign
     accel[(cfg & 0x80) == 0] = np.nan
     temperature[(cfg & 0x20) == 0] = np.nan

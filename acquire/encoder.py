@@ -14,7 +14,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from evcap.acquire.decoder import MAX_WRAPS_PER_WORD, STANDARD_GRAVITY, Geometry
+from evcap.acquire.decoder import MAX_WRAPS_PER_WORD, STANDARD_GRAVITY, Geometry, imu_signs
 from evcap.errors import InputError
 from evcap.events import Events
 from evcap.streams import Frames, ImuSamples, TriggerKind, Triggers
@@ -156,7 +156,7 @@ class StreamEncoder:
     def imu_raw(self, imu: ImuSamples) -> np.ndarray:
         """The int16 register values [N, 7] (AX AY AZ T GX GY GZ) that decode to ``imu``."""
         cfg = self.imu_config
-        sign = np.where(np.asarray(self.geometry.imu_flip), -1.0, 1.0)
+        sign = imu_signs(self.geometry.imu_flip)
         accel_lsb = 4.0 * 2.0 ** ((cfg >> 2) & 3) / 65536.0 * STANDARD_GRAVITY
         gyro_lsb = np.deg2rad(500.0 * 2.0 ** (cfg & 3) / 65536.0)
         if self.geometry.imu_type == 2:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from evcap.acquire.decoder import imu_signs
 from evcap.acquire.encoder import DEFAULT_IMU_CONFIG
 from evcap.events import Events
 from evcap.streams import TriggerKind
@@ -50,7 +51,12 @@ class FixtureContent:
         if triggers is not None:
             self.triggers += list(zip(triggers.t.tolist(), triggers.kind.tolist(), strict=True))
 
-    def arrays(self, imu_type: int = 1, imu_config: int = DEFAULT_IMU_CONFIG) -> dict:
+    def arrays(
+        self,
+        imu_type: int = 1,
+        imu_config: int = DEFAULT_IMU_CONFIG,
+        imu_flip: tuple[bool, bool, bool] = (False, False, False),
+    ) -> dict:
         ev = {
             k: np.concatenate([getattr(e, k) for e in self.events]) if self.events else np.zeros(0)
             for k in "xytp"
@@ -59,6 +65,7 @@ class FixtureContent:
         accel_lsb = 4.0 * 2.0 ** ((imu_config >> 2) & 3) / 65536.0 * STANDARD_GRAVITY
         gyro_lsb = np.deg2rad(500.0 * 2.0 ** (imu_config & 3) / 65536.0)
         temp = raw[:, 3] / 340.0 + 35.0 if imu_type == 1 else raw[:, 3] / 333.87 + 21.0
+        sign = imu_signs(imu_flip)  # the registers' axes into the camera's, as a decoder turns them
         trig = sorted(self.triggers)
         return {
             "events_x": ev["x"].astype(np.uint16),
@@ -73,8 +80,8 @@ class FixtureContent:
             "frames_t": np.array([t for _, t, _ in self.frames], np.int64),
             "frames_exposure_us": np.array([e for _, _, e in self.frames], np.int64),
             "imu_t": np.array([t for t, _ in self.imu], np.int64),
-            "imu_accel": (raw[:, 0:3] * accel_lsb).astype(np.float32),
-            "imu_gyro": (raw[:, 4:7] * gyro_lsb).astype(np.float32),
+            "imu_accel": (raw[:, 0:3] * accel_lsb * sign).astype(np.float32),
+            "imu_gyro": (raw[:, 4:7] * gyro_lsb * sign).astype(np.float32),
             "imu_temperature": temp.astype(np.float32),
             "triggers_t": np.array([t for t, _ in trig], np.int64),
             "triggers_kind": np.array([k for _, k in trig], np.uint8),
@@ -118,7 +125,7 @@ def write_fixture(
             for f in faults
         )
         (folder / "faults.toml").write_text(text)
-    arrays = content.arrays()
+    arrays = content.arrays(imu_flip=imu_flip(regs))
     with open(folder / "expected.npz", "wb") as f:
         np.savez_compressed(f, **arrays)
     summary = {
@@ -132,3 +139,10 @@ def write_fixture(
         "counters": counters or {},
     }
     (folder / "expected.json").write_text(json.dumps(summary, indent=2) + "\n")
+
+
+def imu_flip(registers: dict) -> tuple[bool, bool, bool]:
+    """The IMU orientation flips a fixture's registers give (IMU module 3, parameter 1: bit 2
+    flips x, bit 1 y, bit 0 z), as the driver reads them."""
+    code = int(registers.get("3.1", 0))
+    return bool(code & 4), bool(code & 2), bool(code & 1)

@@ -80,6 +80,14 @@ class Frames:
         return int(self.t.size)
 
 
+# libcaer's IMU axes (what the DAVIS sends, after its orientation flips, and what DV and cAER
+# store) into the camera's (x right, y down, z forward): x and z negated, as rpg_dvs_ros aligns
+# them for Kalibr and VINS. On the bundled DV recording the accelerometer then says the camera is
+# pitched 15 deg down, as its frames show it (the horizon 75 px above the centre); as libcaer
+# gives it, 15 deg up.
+LIBCAER_TO_CAMERA = np.array([-1.0, 1.0, -1.0])
+
+
 @dataclass(frozen=True, eq=False)
 class ImuSamples:
     """IMU samples in physical units, in the camera's axes."""

@@ -8,8 +8,8 @@ bias). Both are fitted to the structure from motion's orientations; over a path 
 frames their errors average out, the gyroscope's shape of the path does not.
 
 The gyroscope is taken in the camera's axes, as the accelerometer is (poses/gravity.py): the
-session's samples as recorded (as the simulator makes them; a real DAVIS346's, as evcap's
-driver and DV store them, have x and z the other way: docs/poses.md), or turned by the
+session's samples as recorded (the driver and the importers turn libcaer's axes into the
+camera's, docs/poses.md), or turned by the
 calibration's camera-IMU rotation and moved onto the camera's clock by its time shift when it
 has them (`evcap calibrate --intrinsics` with a Kalibr camchain: ``in_camera_axes``). They are
 held fixed, not fitted again: Kalibr measures them on a target with the camera swept through

@@ -27,6 +27,7 @@ from evcap.session import Session
 
 COLOR_FILTER_CODES = {"MONO": 0, "RGBG": 1, "GRGB": 2, "GBGR": 3, "BGRG": 4}
 DIGESTED = ("events_x", "events_y", "events_t", "events_p", "frames_data")
+SIMULATED_IMU_FLIP = (True, False, True)  # the IMU orientation register's x, y, z flips
 """The arrays a compact fixture keeps as digests (the large ones)."""
 
 
@@ -61,11 +62,15 @@ def write_session_fixture(
     serial = sensor.serial[:8] if serial is None else serial
     if not 0 < len(serial) <= 8:
         raise InputError(f"a fixture's serial has 1 to 8 characters, not {serial!r}")
+    # The simulated camera's IMU orientation register flips x and z: its registers then hold
+    # the simulator's camera-axis values as they are (libcaer's axes have x and z the other
+    # way, evcap.streams.LIBCAER_TO_CAMERA), as the fixtures made before that was known do.
     geometry = Geometry(
         dvs_columns=sensor.width,
         dvs_rows=sensor.height,
         aps_columns=sensor.width,
         aps_rows=sensor.height,
+        imu_flip=SIMULATED_IMU_FLIP,
         color_filter=sensor.color_filter,
     )
     encoder = StreamEncoder(geometry)
@@ -78,6 +83,7 @@ def write_session_fixture(
         "1.1": sensor.height,
         "2.0": sensor.width,
         "2.1": sensor.height,
+        "3.1": 4 * SIMULATED_IMU_FLIP[0] + 2 * SIMULATED_IMU_FLIP[1] + SIMULATED_IMU_FLIP[2],
     }
     write_fixture(
         folder,
@@ -91,7 +97,7 @@ def write_session_fixture(
     summary = json.loads((folder / "expected.json").read_text())
     summary.update(about or {})
     if compact:
-        arrays = content.arrays()
+        arrays = content.arrays(imu_flip=SIMULATED_IMU_FLIP)
         summary["digests"] = {k: array_digest(arrays[k]) for k in DIGESTED}
         with open(folder / "expected.npz", "wb") as f:
             np.savez_compressed(f, **{k: v for k, v in arrays.items() if k not in DIGESTED})

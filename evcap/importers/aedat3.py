@@ -26,7 +26,7 @@ from evcap.errors import ForeignFormatError, InputError, InputNotFoundError
 from evcap.events import Events, check_color_filter, pixel_channels
 from evcap.importers.common import SENSOR_SIZES, ImportSummary, check_output, partial_output
 from evcap.session import SensorInfo, SessionWriter
-from evcap.streams import Frames, ImuSamples, TriggerKind, Triggers
+from evcap.streams import LIBCAER_TO_CAMERA, Frames, ImuSamples, TriggerKind, Triggers
 
 MAGIC = b"#!AER-DAT"
 STANDARD_GRAVITY = 9.80665  # m/s^2 per g
@@ -419,8 +419,10 @@ class _Decoder:
         self.summary.events += len(ev)
 
     def _imu(self, ev: np.ndarray, t: np.ndarray) -> None:
+        # cAER stores libcaer's axes
         accel = np.stack([ev["ax"], ev["ay"], ev["az"]], axis=1) * STANDARD_GRAVITY
         gyro = np.deg2rad(np.stack([ev["gx"], ev["gy"], ev["gz"]], axis=1))
+        accel, gyro = accel * LIBCAER_TO_CAMERA, gyro * LIBCAER_TO_CAMERA
         self.writer.append_imu(ImuSamples(t, accel, gyro, ev["temp"]))
         self.summary.imu += int(t.size)
 

@@ -21,7 +21,7 @@ from evcap.errors import ForeignFormatError, InputError, InputNotFoundError
 from evcap.events import Events, check_color_filter
 from evcap.importers.common import ImportSummary, check_output, partial_output
 from evcap.session import SensorInfo, SessionWriter
-from evcap.streams import Frames, ImuSamples, Triggers
+from evcap.streams import LIBCAER_TO_CAMERA, Frames, ImuSamples, Triggers
 
 MAGIC = b"#!AER-DAT4.0\r\n"
 STANDARD_GRAVITY = 9.80665  # m/s^2 per g
@@ -282,8 +282,11 @@ def import_aedat4(
                     summary.frames += 1
                 elif "imus" in packet:
                     imu = packet["imus"]
+                    # DV stores libcaer's axes
                     accel = np.stack([imu[f"accelerometer_{a}"] for a in "xyz"], axis=1)
+                    accel = accel * LIBCAER_TO_CAMERA
                     gyro = np.stack([imu[f"gyroscope_{a}"] for a in "xyz"], axis=1)
+                    gyro = gyro * LIBCAER_TO_CAMERA
                     writer.append_imu(
                         ImuSamples(
                             imu["t"].astype(np.int64) - t_offset,

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from evcap.acquire.decoder import Geometry, StreamDecoder
 from evcap.acquire.encoder import StreamEncoder
 from evcap.events import Events
-from evcap.streams import Frames, ImuSamples, TriggerKind, Triggers
+from evcap.streams import LIBCAER_TO_CAMERA, Frames, ImuSamples, TriggerKind, Triggers
 
 G = 9.80665
 
@@ -105,13 +105,14 @@ def imu_words(cfg, values):
 
 
 def test_imu_sample_scaling_and_flips():
-    # +-4 g (fs 1), +-500 deg/s (fs 1), all sensors on; big-endian int16 AX AY AZ T GX GY GZ
+    # +-4 g (fs 1), +-500 deg/s (fs 1), all sensors on; big-endian int16 AX AY AZ T GX GY GZ;
+    # libcaer's axes into the camera's: x and z negated
     raw = [8192, -4096, 100, 340, 655, -6554, 0]
     out, _ = decode([0x8000 | 50, *imu_words(0xE5, raw)])
     imu = out.imu
     assert imu.t.tolist() == [50]
-    np.testing.assert_allclose(imu.accel[0], [G, -0.5 * G, 100 / 8192 * G], rtol=1e-6)
-    np.testing.assert_allclose(imu.gyro[0], np.deg2rad([655, -6554, 0]) / 65.536, rtol=1e-6)
+    np.testing.assert_allclose(imu.accel[0], [-G, -0.5 * G, -100 / 8192 * G], rtol=1e-6)
+    np.testing.assert_allclose(imu.gyro[0], np.deg2rad([-655, -6554, 0]) / 65.536, rtol=1e-6)
     np.testing.assert_allclose(imu.temperature[0], 36.0, rtol=1e-6)  # raw / 340 + 35
     flipped, _ = decode(
         [0x8000 | 50, *imu_words(0xE5, raw)], Geometry(imu_flip=(True, False, True))
@@ -120,17 +121,17 @@ def test_imu_sample_scaling_and_flips():
     mpu9250, _ = decode(imu_words(0xE5, raw), Geometry(imu_type=2))
     np.testing.assert_allclose(mpu9250.imu.temperature[0], 340 / 333.87 + 21, rtol=1e-6)
     fs, _ = decode(imu_words(0xE0 | 3 << 2 | 3, raw))  # +-16 g, +-2000 deg/s
-    np.testing.assert_allclose(fs.imu.accel[0, 0], 8192 * 32 / 65536 * G, rtol=1e-6)
-    np.testing.assert_allclose(fs.imu.gyro[0, 0], np.deg2rad(655 * 4000 / 65536), rtol=1e-6)
+    np.testing.assert_allclose(fs.imu.accel[0, 0], -8192 * 32 / 65536 * G, rtol=1e-6)
+    np.testing.assert_allclose(fs.imu.gyro[0, 0], -np.deg2rad(655 * 4000 / 65536), rtol=1e-6)
 
 
 def test_imu_with_sensors_off_skips_their_bytes():
     out, d = decode(imu_words(0x80 | 1 << 2, [8192, 0, 0]))  # accelerometer only: 6 bytes
     assert d.counters["imu_samples"] == 1
-    np.testing.assert_allclose(out.imu.accel[0], [G, 0, 0], rtol=1e-6)
+    np.testing.assert_allclose(out.imu.accel[0], [-G, 0, 0], rtol=1e-6)
     assert np.isnan(out.imu.gyro[0]).all() and np.isnan(out.imu.temperature[0])
     out, _ = decode(imu_words(0x40 | 1, [0, 0, 6554]))  # gyroscope only
-    np.testing.assert_allclose(out.imu.gyro[0], np.deg2rad([0, 0, 6554 / 65.536]), rtol=1e-6)
+    np.testing.assert_allclose(out.imu.gyro[0], np.deg2rad([0, 0, -6554 / 65.536]), rtol=1e-6)
 
 
 def test_cut_imu_sample_is_dropped():
@@ -257,7 +258,8 @@ def test_encode_decode_round_trip_for_any_split(stream):
     imu_t = np.concatenate([p.imu.t for p in parts])
     np.testing.assert_array_equal(imu_t, imu_raw[0])
     accel = np.concatenate([p.imu.accel for p in parts])
-    np.testing.assert_allclose(accel, imu_raw[1][:, :3] / 8192 * G, rtol=1e-6, atol=1e-9)
+    camera = imu_raw[1][:, :3] / 8192 * G * LIBCAER_TO_CAMERA
+    np.testing.assert_allclose(accel, camera, rtol=1e-6, atol=1e-9)
     tr_t = np.concatenate([p.triggers.t for p in parts])
     tr_k = np.concatenate([p.triggers.kind for p in parts])
     external = tr_k < 6  # at equal times, the order of triggers is not kept

@@ -62,8 +62,16 @@ def test_real_recording_imports_bit_exact(imported):
         imu = s.imu()
         np.testing.assert_array_equal(imu.t + offset, imu_ref["t"].astype(np.int64))
         np.testing.assert_allclose(imu.accel[:, 1], imu_ref["accelerometer_y"] * 9.80665, rtol=1e-6)
-        np.testing.assert_allclose(imu.gyro[:, 2], np.deg2rad(imu_ref["gyroscope_z"]), rtol=1e-6)
+        # DV's (libcaer's) axes into the camera's: x and z negated
+        np.testing.assert_allclose(imu.gyro[:, 2], -np.deg2rad(imu_ref["gyroscope_z"]), rtol=1e-6)
+        np.testing.assert_allclose(
+            imu.accel[:, 0], -imu_ref["accelerometer_x"] * 9.80665, rtol=1e-6
+        )
         assert np.linalg.norm(imu.accel, axis=1).mean() == pytest.approx(9.8, abs=0.3)
+        # gravity (the accelerometer reads "up") then says the camera is pitched about 15 deg
+        # down, as its frames show it: the horizon about 75 px above the image's centre
+        up = imu.accel.mean(0) / np.linalg.norm(imu.accel.mean(0))
+        assert np.degrees(np.arcsin(-up[2])) == pytest.approx(15, abs=2)
 
         trig = s.triggers()
         np.testing.assert_array_equal(trig.t + offset, trig_ref["t"].astype(np.int64))
