@@ -341,8 +341,8 @@ class Recorder:
         reader, rec = self.device.reader, self._recording
         b = Backlog(reader.queued_bytes, reader.max_queued_bytes, reader.held_transfers)
         if rec is not None:
-            b = replace(b, decoded_bytes=rec.thread.queued_bytes)
-            b = replace(b, decoded_limit=rec.thread.max_queued_bytes)
+            q = rec.thread
+            b = replace(b, decoded_bytes=q.queued_bytes, decoded_limit=q.max_queued_bytes)
         return b
 
     def _read_stats(self) -> Stats:

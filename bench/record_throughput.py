@@ -32,7 +32,6 @@ from _event_codecs import compare
 from _record_profile import busy_cores, profile, profile_in_child
 from _streams import dense_events, dense_stream
 
-from evcap.acquire.device import Davis346
 from evcap.session import Session
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -221,8 +220,6 @@ def main(argv: list[str] | None = None) -> dict:
         tmp = Path(folder)
         fixture = tmp / "fixture"
         make_fixture(fixture, data, args.transfer_size)
-        with Davis346.open(f"replay:{fixture}"):
-            pass  # the fixture opens
         baseline = export_commit(args.baseline, ROOT) if args.baseline else None
         try:
             figures = measure(args, fixture, data, tmp, baseline and Path(baseline.name))
