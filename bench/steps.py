@@ -117,8 +117,10 @@ class Clock:
 
 def _check_every() -> int:
     """The steps between the trainers' checks for NaN (each waits for the device)."""
-    from evcap.recon.radiance import stage as radiance
-
+    try:
+        from evcap.recon.radiance import stage as radiance
+    except ImportError:  # a baseline from before recon/ was laid out by its parts
+        import evcap.recon.radiance as radiance
     return getattr(radiance, "CHECK_EVERY", 1)  # before it had a name: every step
 
 
@@ -133,9 +135,9 @@ def measure(args: argparse.Namespace) -> dict:
     """Steps a second of each stage (and each part's share, where this code can time them)."""
     import torch
 
-    from evcap.recon.material.stage import train_material
-    from evcap.recon.radiance.stage import load_training_data, train_radiance
     from evcap.session import Session
+
+    load_training_data, train_radiance, train_material = _trainers()
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -196,6 +198,18 @@ def measure(args: argparse.Namespace) -> dict:
     return out
 
 
+def _trainers() -> tuple:
+    """(load_training_data, train_radiance, train_material) where the code measured has them
+    (a baseline from before recon/ was laid out by its parts has them in two modules)."""
+    try:
+        from evcap.recon.material.stage import train_material
+        from evcap.recon.radiance.stage import load_training_data, train_radiance
+    except ImportError:
+        from evcap.recon.material import train_material
+        from evcap.recon.radiance import load_training_data, train_radiance
+    return load_training_data, train_radiance, train_material
+
+
 def measure_full(args: argparse.Namespace) -> dict:
     """The whole of stage I through reconstruct(): steps a minute and the figures."""
     from evcap.recon.reconstruct import reconstruct
@@ -250,7 +264,9 @@ def run_baseline(args: argparse.Namespace) -> dict:
     try:
         command = [sys.executable, __file__, "--code", folder.name, "--json-only"]
         command += _forwarded(args)
-        done = subprocess.run(command, check=True, capture_output=True, text=True)
+        done = subprocess.run(command, capture_output=True, text=True)
+        if done.returncode:
+            sys.exit(f"the baseline {args.baseline} failed:\n{done.stderr}")
     finally:
         folder.cleanup()
     return json.loads(done.stdout.strip().splitlines()[-1])
