@@ -87,7 +87,8 @@ class _Sample(torch.autograd.Function):
     @staticmethod
     def forward(ctx, image, sampler):
         h, w, c = image.shape
-        x = np.ascontiguousarray(image.detach().reshape(h * w, c).numpy(), dtype=np.float32)
+        # a strided view is read as it is (a render's first channels): no copy
+        x = image.detach().reshape(h * w, c).numpy().astype(np.float32, copy=False)
         ctx.sampler, ctx.shape, ctx.dtype = sampler, image.shape, image.dtype
         return torch.from_numpy(_times(sampler.forward, x)).to(image.dtype)
 
