@@ -117,11 +117,8 @@ class Clock:
 
 def _check_every() -> int:
     """The steps between the trainers' checks for NaN (each waits for the device)."""
-    try:
-        from evcap.recon.radiance import stage as radiance
-    except ImportError:  # a baseline from before recon/ was laid out by its parts
-        import evcap.recon.radiance as radiance
-    return getattr(radiance, "CHECK_EVERY", 1)  # before it had a name: every step
+    stage = sys.modules[_trainers()[1].__module__]  # stage I's trainer's module
+    return getattr(stage, "CHECK_EVERY", 1)  # before it had a name: every step
 
 
 def _wait(device: str) -> None:
