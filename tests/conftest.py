@@ -16,6 +16,24 @@ os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".numba-test-cache"))
 SHARED = Path(os.environ.get("EVCAP_SHARED", ROOT.parent / "shared"))
 SAMPLE_AEDAT4 = SHARED / "data" / "davis346-sample" / "davis346_test_data.aedat4"
 
+# The default run's longest test files (over half a minute each, measured with --durations),
+# longest first. scripts/test.sh deals whole files to two workers in collection order: with
+# the longest dealt first, the two finish together.
+LONGEST_FILES = (
+    "tests/test_bench.py",
+    "tests/test_batch.py",
+    "tests/recon/test_reconstruct.py",
+    "tests/test_demo.py",
+    "tests/recon/test_decomposition.py",
+    "tests/recon/test_resume_threads.py",
+    "tests/acquire/test_recorder.py",
+)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    rank = {name: i for i, name in enumerate(LONGEST_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.relative_to(ROOT).as_posix(), len(rank)))
+
 
 CHROMIUM = Path("/usr/bin/chromium")  # Debian's (scripts/setup.sh installs it where it can)
 

@@ -465,21 +465,35 @@ def test_cli_writes_a_reconstruction(color_session, tmp_path):
     assert "render_psnr_gain" in r.stdout and "base_color_psnr_gain" in r.stdout
 
 
-def test_the_papers_run_completes_both_stages(color_session, tmp_path):
-    """`--preset paper` as a user runs it, its 30,000 + 10,000 steps cut to 20 + 10: 100,000
-    Gaussians, degree-3 harmonics, the full scale, both stages, on the CPU."""
-    out = tmp_path / "paper"
-    args = ["reconstruct", str(color_session), "-o", str(out), "--preset", "paper"]
-    args += ["--iterations", "20", "--material-iterations", "10"]
+def papers_run(session: Path, out: Path, *flags: str) -> tuple[dict, dict]:
+    """`evcap reconstruct --preset paper` as a user runs it, its 30,000 + 10,000 steps cut to
+    20 + 10: (metrics.json, config.toml)."""
+    args = ["reconstruct", str(session), "-o", str(out), "--preset", "paper"]
+    args += ["--iterations", "20", "--material-iterations", "10", *flags]
     r = subprocess.run([sys.executable, "-m", "evcap", *args], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["preset"] == "paper" and metrics["iterations"] == 20
     assert metrics["material_iterations"] == 10 and not metrics["interrupted"]
-    assert metrics["gaussians"] > 50_000  # the paper's start, not pruned away in 20 steps
+    assert np.isfinite(metrics["base_color_psnr_gain"])
     config = tomllib.loads((out / "config.toml").read_text())
     assert config["stage1"]["sh_degree"] == 3 and config["stage2"]["edges"]["frames"] == 200
-    assert np.isfinite(metrics["base_color_psnr_gain"])
+    return metrics, config
+
+
+def test_the_papers_run_completes_both_stages_at_a_tiny_size(color_session, tmp_path):
+    """The paper preset's own settings through both stages, on 2,000 Gaussians at a quarter
+    of the scale (its full size is the slow test below)."""
+    flags = ["--resolution", "0.25", "--set", "stage1.init.gaussians=2000"]
+    metrics, config = papers_run(color_session, tmp_path / "paper", *flags)
+    assert config["stage1"]["init"]["gaussians"] == 2000 and metrics["gaussians"] > 1000
+
+
+@pytest.mark.slow
+def test_the_papers_run_completes_both_stages(color_session, tmp_path):
+    """100,000 Gaussians, degree-3 harmonics, the full scale, both stages, on the CPU."""
+    metrics, _ = papers_run(color_session, tmp_path / "paper")
+    assert metrics["gaussians"] > 50_000  # the paper's start, not pruned away in 20 steps
 
 
 def test_stage_one_settings_over_the_preset(color_session, tmp_path):
