@@ -892,25 +892,20 @@ class _Rasterize(torch.autograd.Function):
         values[:, D] = p.depths
         values[:, D + 1 : D + 4] = p.normals
         result = composite(tiles, p.means2d, p.conics, arrays[3], values)
-        alpha = 1 - result.final_t
-        depth = result.out[:, D] / np.maximum(alpha, DEPTH_ALPHA_MIN)
-        ctx.state = (view, arrays[:3], projection, tiles, result, alpha, D)
+        ctx.state = (view, arrays[:3], projection, tiles, result, D)
         ctx.like = (means, quats, scales, opacities, features, viewmat, means2d)
-        like = features
-        return (
-            _back(result.out[:, :D], like),
-            _back(depth, like),
-            _back(alpha, like),
-            _back(result.out[:, D + 1 : D + 4], like),
-        )
+        pixels = len(result.final_t)
+        outputs = [torch.empty(shape, dtype=features.dtype) for shape in _output_shapes(pixels, D)]
+        _outputs(result.out, result.final_t, D, *(x.numpy() for x in outputs))
+        return tuple(x.to(features.device) for x in outputs)
 
     @staticmethod
     def backward(ctx, v_color, v_depth, v_alpha, v_normal):
-        view, (means, quats, scales), projection, tiles, result, alpha, D = ctx.state
-        pixels = len(alpha)
+        view, (means, quats, scales), projection, tiles, result, D = ctx.state
+        pixels = len(result.final_t)
         v_out, v_alpha_all = np.empty((pixels, result.values.shape[1])), np.empty(pixels)
         grads = [_pixels(v, pixels) for v in (v_color, v_depth, v_alpha, v_normal)]
-        _pixel_gradients(*grads, alpha, result.out, D, v_out, v_alpha_all)
+        _pixel_gradients(*grads, result.final_t, result.out, D, v_out, v_alpha_all)
         per = composite_backward(tiles, result, v_out, v_alpha_all)
         v_means, v_quats, v_scales, v_view = project_backward(
             means,
@@ -949,12 +944,32 @@ def _pixels(v: torch.Tensor | None, pixels: int) -> np.ndarray:
     return v.detach().reshape(pixels, -1).cpu().numpy()
 
 
+def _output_shapes(pixels: int, D: int) -> tuple:
+    """The shapes of the render's color, expected depth, alpha and normal."""
+    return (pixels, D), (pixels,), (pixels,), (pixels, 3)
+
+
 @numba.njit(cache=True, parallel=True)
-def _pixel_gradients(v_color, v_depth, v_alpha, v_normal, alpha, out, D, v_out, v_alpha_all):
-    """d/d(each pixel's composited values [H * W, lanes]) and d/d(its alpha) from the
-    gradients of color, expected depth (sum w z / alpha), alpha and normal ([0, 0] for an
-    output that has none)."""
-    for p in numba.prange(len(alpha)):
+def _outputs(out, final_t, D, color, depth, alpha, normal):
+    """The render's outputs (``_output_shapes``, in their arrays' dtype) from the composited values
+    [H * W, lanes] (the features, sum w z, the normal) and the transmittance left: one pass,
+    no intermediate arrays."""
+    for p in numba.prange(len(final_t)):
+        a = 1 - final_t[p]
+        for c in range(D):
+            color[p, c] = out[p, c]
+        depth[p] = out[p, D] / max(a, DEPTH_ALPHA_MIN)
+        alpha[p] = a
+        for c in range(3):
+            normal[p, c] = out[p, D + 1 + c]
+
+
+@numba.njit(cache=True, parallel=True)
+def _pixel_gradients(v_color, v_depth, v_alpha, v_normal, final_t, out, D, v_out, v_alpha_all):
+    """d/d(each pixel's composited values [H * W, lanes]) and d/d(its alpha, 1 - final_t)
+    from the gradients of color, expected depth (sum w z / alpha), alpha and normal ([0, 0]
+    for an output that has none)."""
+    for p in numba.prange(len(final_t)):
         for c in range(v_out.shape[1]):
             v_out[p, c] = 0.0
         for c in range(v_color.shape[1]):
@@ -963,9 +978,10 @@ def _pixel_gradients(v_color, v_depth, v_alpha, v_normal, alpha, out, D, v_out, 
             v_out[p, D + 1 + c] = v_normal[p, c]
         v_a = v_alpha[p, 0] if v_alpha.shape[0] else 0.0
         if v_depth.shape[0]:
-            a = max(alpha[p], DEPTH_ALPHA_MIN)
+            alpha = 1 - final_t[p]
+            a = max(alpha, DEPTH_ALPHA_MIN)
             v_out[p, D] = v_depth[p, 0] / a
-            if alpha[p] >= DEPTH_ALPHA_MIN:
+            if alpha >= DEPTH_ALPHA_MIN:
                 v_a -= v_depth[p, 0] * out[p, D] / (a * a)
         v_alpha_all[p] = v_a
 
