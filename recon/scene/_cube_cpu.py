@@ -74,18 +74,19 @@ def _lookup_backward(taps, fractions, grad, v_faces):
 class _CubeLookup(torch.autograd.Function):
     @staticmethod
     def forward(ctx, faces, dirs):
-        d = np.ascontiguousarray(dirs.detach().reshape(-1, 3).numpy(), dtype=np.float64)
-        f = np.ascontiguousarray(faces.detach().numpy(), dtype=np.float64)
-        out = np.empty((len(d), faces.shape[1]))
+        # read and written in their own dtype, computed in float64 (float32 to float64 is
+        # exact, and the store rounds as a cast would): no copies
+        d = dirs.detach().reshape(-1, 3).numpy()
+        out = torch.empty(len(d), faces.shape[1], dtype=faces.dtype)
         taps, fractions = np.empty((len(d), 3), np.int64), np.empty((len(d), 2))
-        _lookup(f, d, out, taps, fractions)
+        _lookup(faces.detach().numpy(), d, out.numpy(), taps, fractions)
         ctx.state = (taps, fractions, faces.shape, faces.dtype)
-        return torch.from_numpy(out).to(faces.dtype).reshape(*dirs.shape[:-1], faces.shape[1])
+        return out.reshape(*dirs.shape[:-1], faces.shape[1])
 
     @staticmethod
     def backward(ctx, grad):
         taps, fractions, shape, dtype = ctx.state
-        g = np.ascontiguousarray(grad.detach().reshape(len(taps), -1).numpy(), dtype=np.float64)
+        g = grad.detach().reshape(len(taps), -1).numpy()
         v_faces = np.zeros(tuple(shape))
         _lookup_backward(taps, fractions, g, v_faces)
         return torch.from_numpy(v_faces).to(dtype), None

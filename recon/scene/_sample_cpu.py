@@ -77,9 +77,36 @@ def _rows_times(start, column, weight, x, out):
                 out[r, c] += w * x[j, c]
 
 
+@numba.njit(cache=True, parallel=True)
+def _rows_times_few(start, column, weight, x, out):
+    """_rows_times for up to 4 channels (a render's color, its gradient), each row's sums
+    held in registers: the same float32 sums in the same order, twice as fast (measured at
+    346 x 260)."""
+    channels = x.shape[1]
+    for r in numba.prange(len(start) - 1):
+        s0 = s1 = s2 = s3 = np.float32(0.0)
+        for k in range(start[r], start[r + 1]):
+            w, j = weight[k], column[k]
+            s0 += w * x[j, 0]
+            if channels > 1:
+                s1 += w * x[j, 1]
+            if channels > 2:
+                s2 += w * x[j, 2]
+            if channels > 3:
+                s3 += w * x[j, 3]
+        out[r, 0] = s0
+        if channels > 1:
+            out[r, 1] = s1
+        if channels > 2:
+            out[r, 2] = s2
+        if channels > 3:
+            out[r, 3] = s3
+
+
 def _times(rows: SparseRows, x: np.ndarray) -> np.ndarray:
     out = np.empty((len(rows.start) - 1, x.shape[1]), np.float32)
-    _rows_times(rows.start, rows.column, rows.weight, x, out)
+    product = _rows_times_few if 0 < x.shape[1] <= 4 else _rows_times
+    product(rows.start, rows.column, rows.weight, x, out)
     return out
 
 

@@ -14,7 +14,7 @@ from evcap.recon.events.windows import EventWindows
 from evcap.recon.material.shading import prefiltered
 from evcap.recon.radiance import losses
 from evcap.recon.radiance._surface_terms_cpu import surface_terms_cpu
-from evcap.recon.scene._sample_cpu import Sampler
+from evcap.recon.scene._sample_cpu import Sampler, _rows_times, _rows_times_few
 from evcap.recon.scene.cube_map import cube_lookup, mip_chain
 
 
@@ -132,12 +132,13 @@ def test_prefiltered_blends_the_two_nearest_levels():
     torch.testing.assert_close(prefiltered(levels, d, rough), expected, atol=1e-5, rtol=1e-5)
 
 
-def test_sensor_sampling_matches_grid_sample():
+@pytest.mark.parametrize("channels", [1, 3, 4, 6])
+def test_sensor_sampling_matches_grid_sample(channels):
     g = torch.Generator().manual_seed(0)
     h, w, sensor = 30, 41, 700
     # inside the render and a little past its border (a lens's corners)
     grid = torch.rand(1, 1, sensor, 2, generator=g) * 2.1 - 1.05
-    image = torch.rand(h, w, 4, generator=g, requires_grad=True)
+    image = torch.rand(h, w, channels, generator=g, requires_grad=True)
     expected = F.grid_sample(
         image.permute(2, 0, 1)[None], grid, padding_mode="border", align_corners=True
     )[0, :, 0].T
@@ -150,6 +151,19 @@ def test_sensor_sampling_matches_grid_sample():
         atol=1e-5,
         rtol=1e-5,
     )
+
+
+@pytest.mark.parametrize("channels", [1, 2, 3, 4])
+def test_sensor_sampling_of_few_channels_sums_as_the_general_product(channels):
+    g = torch.Generator().manual_seed(channels)
+    sampler = Sampler.of_grid(torch.rand(1, 1, 500, 2, generator=g) * 2 - 1, 23, 17)
+    render = torch.randn(23 * 17, 5, generator=g).numpy()[:, :channels]  # strided, as it comes
+    sensor = torch.randn(500, channels, generator=g).numpy()
+    for rows, x in ((sampler.forward, render), (sampler.backward, sensor)):
+        few, general = (np.empty((len(rows.start) - 1, channels), np.float32) for _ in "ab")
+        _rows_times_few(rows.start, rows.column, rows.weight, x, few)
+        _rows_times(rows.start, rows.column, rows.weight, x, general)
+        np.testing.assert_array_equal(few, general)
 
 
 @pytest.mark.parametrize("seed", [0, 1])
