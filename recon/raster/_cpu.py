@@ -894,8 +894,10 @@ class _Rasterize(torch.autograd.Function):
         result = composite(tiles, p.means2d, p.conics, arrays[3], values)
         ctx.state = (view, arrays[:3], projection, tiles, result, D)
         ctx.like = (means, quats, scales, opacities, features, viewmat, means2d)
-        pixels = len(result.final_t)
-        outputs = [torch.empty(shape, dtype=features.dtype) for shape in _output_shapes(pixels, D)]
+        pixels, dtype = len(result.final_t), features.dtype
+        color, normal = torch.empty(pixels, D, dtype=dtype), torch.empty(pixels, 3, dtype=dtype)
+        depth, alpha = torch.empty(pixels, dtype=dtype), torch.empty(pixels, dtype=dtype)
+        outputs = (color, depth, alpha, normal)
         _outputs(result.out, result.final_t, D, *(x.numpy() for x in outputs))
         return tuple(x.to(features.device) for x in outputs)
 
@@ -944,16 +946,11 @@ def _pixels(v: torch.Tensor | None, pixels: int) -> np.ndarray:
     return v.detach().reshape(pixels, -1).cpu().numpy()
 
 
-def _output_shapes(pixels: int, D: int) -> tuple:
-    """The shapes of the render's color, expected depth, alpha and normal."""
-    return (pixels, D), (pixels,), (pixels,), (pixels, 3)
-
-
 @numba.njit(cache=True, parallel=True)
 def _outputs(out, final_t, D, color, depth, alpha, normal):
-    """The render's outputs (``_output_shapes``, in their arrays' dtype) from the composited values
-    [H * W, lanes] (the features, sum w z, the normal) and the transmittance left: one pass,
-    no intermediate arrays."""
+    """color [H * W, D], expected depth, alpha and normal [H * W, 3], in their arrays' dtype,
+    from the composited values [H * W, lanes] (the features, sum w z, the normal) and the
+    transmittance left: one pass, no intermediate arrays."""
     for p in numba.prange(len(final_t)):
         a = 1 - final_t[p]
         for c in range(D):
