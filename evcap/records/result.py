@@ -26,6 +26,7 @@ SHOWN = (
     "depth_rel_err",
     "depth_within_5pct",
     "background_clear",
+    "silhouette_iou",
     "render_psnr",
     "render_psnr_gain",
     "blur_psnr",
@@ -80,6 +81,9 @@ class Figures:
     )
     background_clear: float | None = _figure(
         "pixels off the object seen through (alpha < 0.5)", "fraction", STAGE_I
+    )
+    silhouette_iou: float | None = _figure(
+        "silhouette (alpha >= 0.5) against the object's, intersection over union", "", STAGE_I
     )
     radiance_normal_mae_deg: float | None = _figure("normal error, mean angle", "deg", STAGE_I)
     # the last stage's normals: stage II's after it, else stage I's

@@ -138,6 +138,14 @@ def background_clear(alpha: np.ndarray, mask: np.ndarray) -> float:
     return float((alpha[off] < 0.5).mean()) if off.any() else float("nan")
 
 
+def silhouette_iou(alpha: np.ndarray, mask: np.ndarray) -> float:
+    """Intersection over union of the rendered silhouette (alpha >= 0.5) and the object's
+    pixels (``mask``): the shape a user sees against the truth's, fog and holes alike."""
+    shown = alpha >= 0.5
+    union = (shown | mask).sum()
+    return float((shown & mask).sum() / union) if union else float("nan")
+
+
 def normal_mae_deg(pred: np.ndarray, gt: np.ndarray) -> float:
     """Mean angle (degrees) between unit normals where the truth has a surface; a missing
     prediction (zero vector) counts as 90 degrees."""

@@ -18,6 +18,7 @@ from evcap.recon.evaluate.metrics import (
     lpips_if_available,
     normal_mae_deg,
     object_metrics,
+    silhouette_iou,
     srgb,
     surface_metrics,
 )
@@ -91,6 +92,7 @@ def metrics(views: dict[str, np.ndarray], truth: TruthViews) -> dict[str, float 
         out["depth_within_5pct"] = depth_within(views["depth"], truth.depth)
     if mask is not None:
         out["background_clear"] = background_clear(views["alpha"], mask)
+        out["silhouette_iou"] = silhouette_iou(views["alpha"], mask)
     if truth.normal is not None:
         out["normal_mae_deg"] = normal_mae_deg(views["normal"], truth.normal)
     return out

@@ -12,6 +12,7 @@ from evcap.recon.events.windows import WindowsConfig
 from evcap.recon.radiance.densify import DensifyConfig
 from evcap.recon.radiance.pose_refinement import PoseRefinementConfig
 from evcap.recon.radiance.terms import LossConfig
+from evcap.recon.scene.event_stereo import StereoConfig
 from evcap.recon.scene.gaussians import BackgroundConfig, LearningRates
 
 
@@ -25,18 +26,30 @@ class InitConfig:
     """Stage I's first Gaussians."""
 
     gaussians: int = 5000
-    """How many: random points inside the volume the cameras look at."""
+    """How many: random points inside the volume the cameras look at, but for the shares
+    below."""
     on_points: float = 0.0
     """The share of them started on structure from motion's points instead, when the poses
     come with them (`evcap poses` writes them beside the poses)."""
+    on_events: float = 0.0
+    """The share started on the points the events' multi-view stereo finds (fewer when it
+    finds fewer: none is then drawn at random in their place)."""
+    stereo: StereoConfig = StereoConfig()
+    """The events' multi-view stereo."""
     size_px: float = 1.0
     """Their largest starting size (sigma), in render pixels."""
 
     def __post_init__(self) -> None:
         if self.gaussians < 1 or self.size_px <= 0:
             raise InputError("init.gaussians must be at least 1 and init.size_px above 0")
-        if not 0 <= self.on_points <= 1:
-            raise InputError("init.on_points is a share of init.gaussians, in [0, 1]")
+        if not 0 <= self.on_points <= 1 or not 0 <= self.on_events <= 1:
+            raise InputError(
+                "init.on_points and init.on_events are shares of init.gaussians, in [0, 1]"
+            )
+        if self.on_points + self.on_events > 1:
+            raise InputError(
+                "init.on_points and init.on_events share init.gaussians: at most 1 together"
+            )
 
 
 @dataclass(frozen=True)

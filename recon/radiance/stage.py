@@ -31,6 +31,7 @@ from evcap.recon.radiance.pose_refinement import PoseCorrections, PoseRefinement
 from evcap.recon.radiance.terms import StepInputs, after, stage_one_terms, total_loss
 from evcap.recon.raster.rasterize import Camera, Render, rasterize
 from evcap.recon.resume import Steps, random_states, restore_random_states
+from evcap.recon.scene.event_stereo import event_stereo
 from evcap.recon.scene.gaussians import Background, Gaussians, make_optimizer, means_lr
 from evcap.recon.scene.optics import CHANNEL_WEIGHTS, RenderGrid, SensorOptics, render_grid
 from evcap.recon.scene.volume import SceneVolume, sample_points, scene_volume
@@ -51,6 +52,7 @@ class TrainingData:
     channel_weights: torch.Tensor  # [H * W, 3]: what each sensor pixel sees of (R, G, B)
     mask: torch.Tensor  # [H * W] bool: pixels the loss uses (hot pixels left out)
     volume: SceneVolume
+    structure: np.ndarray | None = None  # [N, 3] the events' stereo points (init.on_events)
     _viewmats: tuple[Poses, torch.Tensor] | None = dataclasses.field(default=None, repr=False)
 
     def viewmats(self) -> torch.Tensor:
@@ -112,15 +114,27 @@ def _training_data(
     windows = EventWindows.from_session(session, optics, start, end, config.windows, device)
     weights = CHANNEL_WEIGHTS[torch.from_numpy(optics.channels().astype(np.int64))]
     mask = torch.from_numpy(~optics.hot_pixels.ravel())
-    volume, grid, coarse = None, None, None
+    volume, grid, coarse, structure = None, None, None, None
     if geometry:
         poses = track.at(windows.frame_times)
         volume = scene_volume(poses, optics.K, optics.width, optics.height)
         grid = render_grid(optics, config.resolution, device)
         if config.coarse.until:
             coarse = render_grid(optics, config.coarse.resolution, device)
+        if config.init.on_events > 0:
+            stretch = windows.frame_times[0], windows.frame_times[-1]
+            found = event_stereo(session.events, stretch, track, optics, volume, config.init.stereo)
+            structure = found.points
     return TrainingData(
-        optics, track, windows, grid, coarse, weights.to(device), mask.to(device), volume
+        optics,
+        track,
+        windows,
+        grid,
+        coarse,
+        weights.to(device),
+        mask.to(device),
+        volume,
+        structure,
     )
 
 
@@ -263,10 +277,21 @@ def _new_field(
     if init.on_points > 0 and data.track.points_xyz is not None:
         n = min(round(init.on_points * init.gaussians), init.gaussians)
         points = on_points(data.track.points_xyz, data.volume, n, rng)
-    rest = init.gaussians - len(points)
+    missing = 0  # stereo points asked for and not found: none drawn at random in their place
+    if init.on_events > 0 and data.structure is not None:
+        n = round(init.on_events * init.gaussians)
+        found = data.structure[rng.permutation(len(data.structure))[:n]]
+        points, missing = np.concatenate([points, found]), n - len(found)
+    rest = init.gaussians - len(points) - missing
     if rest > 0:
         randoms = sample_points(data.volume, poses, o.K, o.width, o.height, rest, rng)
         points = np.concatenate([points, randoms])
+    if len(points) == 0:
+        raise InputError(
+            "stage I has no Gaussians to start from: the events' stereo found no structure "
+            "(too few events, or none that moved across the sensor); start some at random "
+            "(--set stage1.init.on_events=0.5)"
+        )
     g = torch.Generator().manual_seed(seed)
     # no larger than init.size_px render pixels at the volume's distance: random points fill
     # the whole view, and large ones would overlap by hundreds at every pixel

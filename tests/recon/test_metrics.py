@@ -12,6 +12,7 @@ from evcap.recon.evaluate.metrics import (
     depth_within,
     object_metrics,
     psnr,
+    silhouette_iou,
     srgb,
 )
 from evcap.records import TruthViews
@@ -142,3 +143,13 @@ def test_the_backdrop_seen_through():
     # off the object: 0.9, 0.1, 0.49, 0.5, 0.0 -> three below 0.5; the object's alpha not counted
     assert background_clear(alpha, mask) == pytest.approx(3 / 5)
     assert np.isnan(background_clear(alpha, np.ones_like(mask)))
+
+
+def test_the_silhouette_against_the_objects():
+    mask = np.zeros((1, 2, 3), bool)
+    mask[0, 0, :2] = True
+    alpha = np.array([[[1.0, 0.4, 0.0], [0.5, 0.0, 0.0]]])
+    # shown: (0, 0) and (1, 0); the object (0, 0) and (0, 1): one shared of three
+    assert silhouette_iou(alpha, mask) == pytest.approx(1 / 3)
+    assert silhouette_iou(mask.astype(float), mask) == 1.0
+    assert np.isnan(silhouette_iou(np.zeros((1, 2, 3)), np.zeros_like(mask)))

@@ -10,6 +10,7 @@ import pytest
 
 from evcap.recon.config import PRESET_NAMES
 from evcap.recon.presets import preset
+from evcap.recon.scene.event_stereo import StereoConfig
 from evcap.recon.settings import names
 from evcap.sim.scene import SensorSpec
 
@@ -74,6 +75,8 @@ STAGE_ONE |= {f"lr_{k}": f"lr.{k}" for k in ("opacity", "sh", "background")}
 # the normal's and the binary's counted from the start
 NEW = {f"loss.{t}.start": 0.0 for t in ("anchor", "spread", "smooth", "curvature", "quiet_tv")}
 NEW |= {f"loss.{t}.start": 0.0 for t in ("background_tv", "alpha", "opacity", "flatten")}
+# none started on the events' stereo, whose own settings then do nothing
+NEW |= {"init.on_events": 0.0} | {f"init.stereo.{k}": v for k, v in names(StereoConfig())}
 STAGE_TWO = {
     "distill_weight": "loss.distill",
     "anchor_weight": "loss.anchor",

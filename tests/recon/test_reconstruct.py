@@ -596,6 +596,26 @@ def test_gaussians_start_on_the_poses_points_when_asked(color_session, tmp_path)
         preset("tiny", {"stage1.init.on_points": 1.5})
 
 
+def test_gaussians_start_on_the_events_structure_when_asked(color_session):
+    """Every starting Gaussian on a point the events' stereo found (none random); half of
+    them when half is asked; none found, a clear error."""
+    config = preset("tiny", {"stage1.init.on_events": 1.0}).stage1
+    with Session.open(color_session) as s:
+        data = load_training_data(s, config, "cpu")
+    assert data.structure is not None and len(data.structure) > 20  # a 48 x 36 sensor's
+    means = new_field(data, config, 0, "cpu", "torch").gaussians.means.detach().numpy()
+    assert len(means) == min(config.init.gaussians, len(data.structure))
+    found = data.structure.astype(np.float32)
+    assert np.isin(means, found).all(axis=1).all()
+    half = preset("tiny", {"stage1.init.on_events": 0.5, "stage1.init.gaussians": 40}).stage1
+    means = new_field(data, half, 0, "cpu", "torch").gaussians.means.detach().numpy()
+    assert len(means) == half.init.gaussians
+    assert np.isin(means, found).all(axis=1).sum() == round(0.5 * half.init.gaussians)
+    data.structure = np.zeros((0, 3))
+    with pytest.raises(InputError, match="stereo found no structure"):
+        new_field(data, config, 0, "cpu", "torch")
+
+
 # every preset runs at a tiny size in the default run: tiny in most tests here, paper above,
 # small (the demo's) in tests/test_demo.py at 150 steps, fast here
 RUN_ELSEWHERE = {"tiny", "paper", "small"}
