@@ -6,7 +6,8 @@ where the camera was when it fired, passes through the edge. Cast into the depth
 reference view (a disparity-space volume), the rays of many events cross where the edge is:
 each pixel's depth is where its rays are densest, kept where that density stands out from its
 neighbourhood's (adaptive threshold). Reference views every stretch of the path; their points
-merged, and kept where another reference view found one near (one view's noise is alone).
+merged, and kept where other reference views, with none of its events, found one near (one
+view's noise is alone).
 
 What lies at infinity (a horizon, the ground of an environment) casts parallel rays: they are
 densest at the farthest plane, and the points there belong to the background, not to the
@@ -45,17 +46,18 @@ class StereoConfig:
     contrast: float = 1.5
     """A pixel is kept where its rays' density is this many times its neighbourhood's."""
     agree: float = 0.02
-    """A point is kept where another reference view found one within this share of the
-    volume's radius."""
+    """A point is kept where other reference views found one within this share of the
+    volume's radius ..."""
     witnesses: int = 2
-    """... by at least this many other reference views whose stretches share no event with
-    its own."""
+    """... at least this many of them, none sharing an event with its own view."""
 
     def __post_init__(self) -> None:
         if self.references < 2 or self.planes < 8 or self.max_events < 1:
             raise InputError("init.stereo needs references >= 2, planes >= 8, max_events >= 1")
-        if self.overlap <= 0 or self.contrast < 1 or self.agree <= 0:
-            raise InputError("init.stereo needs overlap > 0, contrast >= 1 and agree > 0")
+        if self.overlap <= 0 or self.contrast < 1 or self.agree <= 0 or self.witnesses < 1:
+            raise InputError(
+                "init.stereo needs overlap > 0, contrast >= 1, agree > 0 and witnesses >= 1"
+            )
 
 
 @dataclass

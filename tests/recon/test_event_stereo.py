@@ -106,3 +106,5 @@ def test_its_settings_are_checked():
 
     with pytest.raises(InputError, match="references"):
         StereoConfig(references=1)
+    with pytest.raises(InputError, match="witnesses"):
+        StereoConfig(witnesses=0)
