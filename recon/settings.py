@@ -75,27 +75,34 @@ def names(config: object, prefix: str = "") -> Iterator[tuple[str, object]]:
 
 
 def with_overrides(config: C, overrides: Mapping[str, object]) -> C:
-    """The config with the settings named by dotted names replaced; an unknown name is refused
-    with the names it might have meant."""
-    for dotted, value in overrides.items():
-        config = _replace(config, dotted.split("."), value, dotted)
-    return config
+    """The config with the settings named by dotted names replaced, all at once (a config's
+    checks see its settings as they end, never a mix of old and new); an unknown name is
+    refused with the names it might have meant."""
+    named = [(dotted.split("."), value, dotted) for dotted, value in overrides.items()]
+    return _replace(config, named)
 
 
-def _replace(config: Any, path: list[str], value: object, dotted: str) -> Any:
+def _replace(config: Any, named: list[tuple[list[str], object, str]]) -> Any:
+    """``config`` with each (path, value, dotted name) in ``named`` set; a later one wins."""
     fields = {f.name for f in dataclasses.fields(config)}
-    head = path[0]
-    if head not in fields:
-        raise InputError(f"unknown setting {dotted!r}{_suggestion(config, dotted)}")
-    current = getattr(config, head)
-    if len(path) > 1:
-        if not is_config(current):
-            raise InputError(f"unknown setting {dotted!r}: {head} is not a group of settings")
-        return dataclasses.replace(config, **{head: _replace(current, path[1:], value, dotted)})
-    if is_config(current):
-        raise InputError(f"{dotted!r} is a group of settings; name one of them ({head}.NAME)")
-    value = _checked(_field_types(type(config))[head], value, dotted)
-    return dataclasses.replace(config, **{head: value})
+    changes: dict[str, object] = {}
+    within: dict[str, list] = {}
+    for path, value, dotted in named:
+        head = path[0]
+        if head not in fields:
+            raise InputError(f"unknown setting {dotted!r}{_suggestion(config, dotted)}")
+        current = getattr(config, head)
+        if len(path) > 1:
+            if not is_config(current):
+                raise InputError(f"unknown setting {dotted!r}: {head} is not a group of settings")
+            within.setdefault(head, []).append((path[1:], value, dotted))
+        elif is_config(current):
+            raise InputError(f"{dotted!r} is a group of settings; name one of them ({head}.NAME)")
+        else:
+            changes[head] = _checked(_field_types(type(config))[head], value, dotted)
+    for head, inner in within.items():
+        changes[head] = _replace(getattr(config, head), inner)
+    return dataclasses.replace(config, **changes) if changes else config
 
 
 def _suggestion(config: object, dotted: str) -> str:

@@ -139,3 +139,12 @@ def test_the_flags_make_the_options_record(tmp_path):
 
 def test_the_root_names_both_stages():
     assert [f.name for f in dataclasses.fields(ReconstructionSettings)] == ["stage1", "stage2"]
+
+
+def test_settings_are_checked_as_they_end_not_one_at_a_time():
+    """fast starts on the events; moving that share to structure from motion's points passes
+    through no state its checks refuse (each share alone would add up to more than 1)."""
+    settings = preset("fast", {"stage1.init.on_points": 1.0, "stage1.init.on_events": 0.0})
+    assert (settings.stage1.init.on_points, settings.stage1.init.on_events) == (1.0, 0.0)
+    with pytest.raises(InputError, match="at most 1"):
+        preset("fast", {"stage1.init.on_points": 1.0})
