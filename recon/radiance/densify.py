@@ -17,7 +17,7 @@ from evcap.errors import InputError
 from evcap.recon.raster.rasterize import Render, quat_to_rotmat
 from evcap.recon.scene.gaussians import PARAMS, Gaussians
 from evcap.recon.scene.optics import RenderGrid
-from evcap.recon.scene.volume import SceneVolume
+from evcap.recon.scene.volume import Ball
 
 
 @dataclass(frozen=True)
@@ -43,8 +43,10 @@ class DensifyConfig:
     max_gaussians: int = 15_000
     """It grows no further than this many Gaussians."""
     confine: float = 0.0
-    """Gaussians that leave the ball the cameras converge on, grown by this factor, are pruned
-    at each densification (0: never)."""
+    """Gaussians that leave the foreground's ball (recon/scene/volume.py foreground_ball: as
+    wide as the events' structure where stage I starts on it, else the ball the cameras
+    converge on), grown by this factor, are pruned every ``every`` steps after ``start``, to
+    the end of the run: what lies beyond is the background's (0: never)."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.start <= self.stop <= 1:
@@ -103,10 +105,11 @@ class DefaultStrategy(Strategy):
 
     @classmethod
     def for_run(
-        cls, config: DensifyConfig, iterations: int, extent: float, volume: SceneVolume | None
+        cls, config: DensifyConfig, iterations: int, extent: float, bound: Ball | None
     ) -> DefaultStrategy:
-        """The strategy of a run of ``iterations`` steps in a scene of ``extent``."""
-        confine = config.confine > 0 and volume is not None and volume.converging
+        """The strategy of a run of ``iterations`` steps in a scene of ``extent``, its
+        Gaussians confined to ``bound`` grown by config.confine (when both are given)."""
+        confine = config.confine > 0 and bound is not None
         return cls(
             start=math.floor(config.start * iterations),
             stop=math.floor(config.stop * iterations),
@@ -117,8 +120,8 @@ class DefaultStrategy(Strategy):
             min_opacity=config.min_opacity,
             max_gaussians=config.max_gaussians,
             extent=extent,
-            confine_radius=config.confine * volume.radius if confine else 0.0,
-            center=tuple(float(c) for c in volume.center) if confine else (0.0, 0.0, 0.0),
+            confine_radius=config.confine * bound.radius if confine else 0.0,
+            center=bound.center if confine else (0.0, 0.0, 0.0),
         )
 
     def initialize_state(self) -> dict[str, torch.Tensor]:
@@ -138,6 +141,12 @@ class DefaultStrategy(Strategy):
             _observe(state, r, grid.width, grid.height)
         if self.start < step <= self.stop and step % self.every == 0:
             self.densify(gaussians, optimizer, state)
+        elif self.confine_radius > 0 and step > self.start and step % self.every == 0:
+            # after densification stops, what drifts out of the foreground still goes
+            outside = ~self.inside(gaussians)
+            if outside.any():
+                _select(gaussians, optimizer, ~outside)
+                _fit(state, len(gaussians), gaussians.means.device)
         if self.reset_every and step % self.reset_every == 0 and step <= self.stop:
             reset_opacities(gaussians, optimizer)
 
@@ -175,14 +184,20 @@ class DefaultStrategy(Strategy):
         keep &= model.opacities >= self.min_opacity
         keep &= model.scales.max(1).values <= self.extent  # none larger than the scene
         keep &= torch.isfinite(model.means).all(1)
-        if self.confine_radius > 0:
-            center = torch.as_tensor(self.center, dtype=model.means.dtype, device=device)
-            keep &= (model.means.detach() - center).norm(dim=1) <= self.confine_radius
+        keep &= self.inside(model)
         pruned = int((~keep).sum()) - len(split)
         _select(model, optimizer, keep)
         state["grad_sum"] = torch.zeros(len(model), device=device)
         state["count"] = torch.zeros(len(model), device=device)
         return {"cloned": len(clone), "split": len(split), "pruned": pruned}
+
+    def inside(self, model: Gaussians) -> torch.Tensor:
+        """[N] bool: the Gaussians inside the foreground's ball (all when not confined)."""
+        means = model.means.detach()
+        if self.confine_radius <= 0:
+            return torch.ones(len(means), dtype=torch.bool, device=means.device)
+        center = torch.as_tensor(self.center, dtype=means.dtype, device=means.device)
+        return (means - center).norm(dim=1) <= self.confine_radius
 
 
 def _fit(state: dict[str, torch.Tensor], n: int, device: torch.device) -> None:

@@ -34,7 +34,13 @@ from evcap.recon.resume import Steps, random_states, restore_random_states
 from evcap.recon.scene.event_stereo import event_stereo
 from evcap.recon.scene.gaussians import Background, Gaussians, make_optimizer, means_lr
 from evcap.recon.scene.optics import CHANNEL_WEIGHTS, RenderGrid, SensorOptics, render_grid
-from evcap.recon.scene.volume import SceneVolume, sample_points, scene_volume
+from evcap.recon.scene.volume import (
+    Ball,
+    SceneVolume,
+    foreground_ball,
+    sample_points,
+    scene_volume,
+)
 from evcap.recon.step_timer import UNTIMED, StepTimer
 from evcap.records import Poses
 from evcap.session import Session
@@ -53,6 +59,7 @@ class TrainingData:
     mask: torch.Tensor  # [H * W] bool: pixels the loss uses (hot pixels left out)
     volume: SceneVolume
     structure: np.ndarray | None = None  # [N, 3] the events' stereo points (init.on_events)
+    bound: Ball | None = None  # the foreground's (densify.confine)
     _viewmats: tuple[Poses, torch.Tensor] | None = dataclasses.field(default=None, repr=False)
 
     def viewmats(self) -> torch.Tensor:
@@ -73,6 +80,7 @@ class TrainingData:
             "grid": self.grid.state(),
             "coarse_grid": coarse,
             "volume": self.volume.state(),
+            "bound": self.bound.state() if self.bound is not None else None,
             "windows": self.windows.digest(),
         }
 
@@ -90,6 +98,8 @@ def load_training_data(
         coarse = derived["coarse_grid"]
         data.coarse_grid = RenderGrid.from_state(coarse, device) if coarse is not None else None
         data.volume = SceneVolume.from_state(derived["volume"])
+        bound = derived.get("bound")  # a state saved before the bound was: the volume's
+        data.bound = Ball.from_state(bound) if bound else foreground_ball(data.volume, None)
     return data
 
 
@@ -114,7 +124,7 @@ def _training_data(
     windows = EventWindows.from_session(session, optics, start, end, config.windows, device)
     weights = CHANNEL_WEIGHTS[torch.from_numpy(optics.channels().astype(np.int64))]
     mask = torch.from_numpy(~optics.hot_pixels.ravel())
-    volume, grid, coarse, structure = None, None, None, None
+    volume, grid, coarse, structure, bound = None, None, None, None, None
     if geometry:
         poses = track.at(windows.frame_times)
         volume = scene_volume(poses, optics.K, optics.width, optics.height)
@@ -125,6 +135,7 @@ def _training_data(
             stretch = windows.frame_times[0], windows.frame_times[-1]
             found = event_stereo(session.events, stretch, track, optics, volume, config.init.stereo)
             structure = found.points
+        bound = foreground_ball(volume, structure)
     return TrainingData(
         optics,
         track,
@@ -135,6 +146,7 @@ def _training_data(
         mask.to(device),
         volume,
         structure,
+        bound,
     )
 
 
@@ -355,7 +367,7 @@ def train_radiance(
     extent = data.volume.radius
     optimizer = make_optimizer(field.gaussians, field.background, config.lr, extent)
     if strategy is None:
-        strategy = DefaultStrategy.for_run(config.densify, config.iterations, extent, data.volume)
+        strategy = DefaultStrategy.for_run(config.densify, config.iterations, extent, data.bound)
     strategy_state = strategy.initialize_state()
     refines = config.poses.refines(data.track)
     corrections, pose_optimizer = _pose_corrections(data, config.poses, extent, refines)

@@ -44,6 +44,40 @@ class SceneVolume:
         )
 
 
+@dataclass(frozen=True)
+class Ball:
+    """Where the scene's foreground lies: what is outside belongs to the background at
+    infinity (single_object's ground, a room's far walls)."""
+
+    center: tuple[float, float, float]
+    radius: float
+
+    def state(self) -> dict:
+        return {"center": list(self.center), "radius": self.radius}
+
+    @classmethod
+    def from_state(cls, state: dict) -> Ball:
+        return cls(tuple(float(c) for c in state["center"]), float(state["radius"]))
+
+
+def foreground_ball(volume: SceneVolume, structure: np.ndarray | None) -> Ball | None:
+    """The foreground's ball: about the point the cameras look at (else, when they do not
+    converge, the middle of the structure's 1st to 99th percentiles), as wide as 99 % of the
+    structure's points (the events' stereo: recon/scene/event_stereo.py) lie from it, or the
+    volume's ball where there is no structure; None when neither says where the scene is."""
+    if structure is not None and len(structure) >= 100:
+        if volume.converging:
+            center = np.asarray(volume.center, np.float64)
+        else:
+            lo, hi = np.percentile(structure, [1, 99], axis=0)
+            center = 0.5 * (lo + hi)
+        radius = float(np.percentile(np.linalg.norm(structure - center, axis=1), 99))
+        return Ball(tuple(float(c) for c in center), radius)
+    if volume.converging:
+        return Ball(tuple(float(c) for c in volume.center), float(volume.radius))
+    return None
+
+
 def scene_volume(T_world_cam: np.ndarray, K: np.ndarray, width: int, height: int) -> SceneVolume:
     """The volume seen by cameras with poses [N, 4, 4] (camera-to-world) and intrinsics K."""
     c = T_world_cam[:, :3, 3]

@@ -7,7 +7,7 @@ import pytest
 from evcap.events import Events
 from evcap.recon.scene.event_stereo import StereoConfig, event_stereo
 from evcap.recon.scene.optics import SensorOptics
-from evcap.recon.scene.volume import scene_volume
+from evcap.recon.scene.volume import foreground_ball, scene_volume
 from evcap.records import Poses
 from evcap.sim.trajectory import look_at
 
@@ -91,6 +91,17 @@ def test_the_points_lie_on_the_painted_sphere(horizon):
     # the horizon lies at infinity: none of it is taken for structure (one stray point in
     # several hundred, with it or without it)
     assert (np.linalg.norm(found.points, axis=1) > 1.25 * RADIUS).mean() < 0.01
+
+
+def test_the_foreground_holds_the_sphere_and_not_the_horizon():
+    """The ball the Gaussians are confined to, from the stereo's points: about where the
+    cameras look (the sphere's centre), a little wider than the sphere, the horizon left out;
+    with no structure, the ball the cameras converge on."""
+    found, volume = stereo(horizon=True)
+    ball = foreground_ball(volume, found.points)
+    assert np.linalg.norm(ball.center) < 0.05 * RADIUS
+    assert RADIUS <= ball.radius < 1.25 * RADIUS
+    assert foreground_ball(volume, None).radius == volume.radius
 
 
 def test_no_events_no_points():
