@@ -1,12 +1,15 @@
-"""Stage I geometry: each candidate change against the settings as they are, on the object's
-pixels of the held-out views (PSNR raw and after one gain beside a constant color's, normal
-error, depth error as a share of the distance) and the time it took.
+"""Stage I geometry: each candidate change against the settings as they are, over seeds, on
+the held-out views: the object's pixels (PSNR raw and after one gain beside a constant color's,
+normal error, depth error as a share of the distance), the silhouette against the truth's
+(IoU) and the backdrop left clear; each figure's mean and spread (largest less smallest) over
+the seeds, and the time it took.
 
     .venv/bin/python bench/geometry.py [--scenes single_object multi_object] [--preset fast]
-        [--iterations N] [--resolution X] [--seed 5] [--variants base binary ...] [--merge]
+        [--iterations N] [--resolution X] [--seeds 0 1 2] [--variants base binary ...] [--merge]
 
 A variant is a name and the stage-I settings it changes (VARIANTS, by their dotted names within
 stage I: recon/radiance/config.py); `base` changes nothing.
+Seeds 0, 1, 2 (the default) report a change; choose among changes on tuning seeds (3 and up).
 --iterations and --resolution screen the variants on a shorter run than the preset's.
 --merge keeps the rows of the previous results that this run does not redo.
 """
@@ -52,11 +55,7 @@ VARIANTS: dict[str, dict] = {
     "quiet tv 1": {"loss.quiet_tv.weight": 1.0},
     "coarse to fine": {"coarse.until": 0.3, "coarse.resolution": 0.375},
 }
-COLUMNS = (
-    "scene",
-    "variant",
-    "iterations",
-    "resolution",
+FIGURES = (
     "seconds",
     "gaussians",
     "object_psnr",
@@ -64,9 +63,34 @@ COLUMNS = (
     "object_psnr_constant",
     "normal_mae_deg",
     "depth_rel_err",
+    "silhouette_iou",
+    "background_clear",
     "render_psnr",
     "render_psnr_gain",
 )
+COLUMNS = ("scene", "variant", "seed", "iterations", "resolution", *FIGURES)
+SPREAD_COLUMNS = ("scene", "variant", "seeds") + tuple(
+    f"{f} {part}" for f in FIGURES[2:] for part in ("mean", "spread")
+)
+
+
+def over_seeds(rows: list[dict]) -> list[dict]:
+    """Each (scene, variant)'s figures over its seeds: the mean and the spread (largest less
+    smallest)."""
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["scene"], r["variant"], r["iterations"]), []).append(r)
+    out = []
+    for (scene, variant, _), runs in groups.items():
+        row: dict = {"scene": scene, "variant": variant}
+        row["seeds"] = " ".join(str(r["seed"]) for r in runs)
+        for f in FIGURES[2:]:
+            values = [r[f] for r in runs if r.get(f) is not None]
+            if values:
+                row[f"{f} mean"] = sum(values) / len(values)
+                row[f"{f} spread"] = max(values) - min(values)
+        out.append(row)
+    return out
 
 
 def run(session: Path, preset: str, seed: int, args: argparse.Namespace, settings: dict) -> dict:
@@ -84,7 +108,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--preset", default="fast")
     parser.add_argument("--iterations", type=int)
     parser.add_argument("--resolution", type=float)
-    parser.add_argument("--seed", type=int, default=5)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--merge", action="store_true", help="keep the previous rows not rerun")
     args = parser.parse_args(argv)
@@ -95,26 +119,30 @@ def main(argv: list[str] | None = None) -> list[dict]:
     for scene in args.scenes:
         session = session_of(scene)
         for name in args.variants:
-            started = time.perf_counter()
-            result = run(session, args.preset, args.seed, args, VARIANTS[name])
-            row = {
-                "scene": scene_label(scene),
-                "variant": name,
-                "preset": args.preset,
-                "seed": args.seed,
-                "resolution": args.resolution,
-                "wall_seconds": time.perf_counter() - started,
-                **result,
-            }
-            rows.append(row)
-            print(" ".join(f"{k}={row.get(k)}" for k in COLUMNS), flush=True)
-    redone = {(r["scene"], r["variant"], r["iterations"]) for r in rows}
-    rows = [r for r in kept if (r["scene"], r["variant"], r["iterations"]) not in redone] + rows
+            for seed in args.seeds:
+                started = time.perf_counter()
+                result = run(session, args.preset, seed, args, VARIANTS[name])
+                row = {
+                    "scene": scene_label(scene),
+                    "variant": name,
+                    "preset": args.preset,
+                    "seed": seed,
+                    "resolution": args.resolution,
+                    "wall_seconds": time.perf_counter() - started,
+                    **result,
+                }
+                rows.append(row)
+                print(" ".join(f"{k}={row.get(k)}" for k in COLUMNS), flush=True)
+
+    def key(r: dict) -> tuple:
+        return r["scene"], r["variant"], r["iterations"], r.get("seed")
+
+    redone = {key(r) for r in rows}
+    rows = [r for r in kept if key(r) not in redone] + rows
     RESULTS.mkdir(exist_ok=True)
-    path.write_text(
-        json.dumps({"benchmark": "geometry", "machine": machine(), "runs": rows}, indent=2)
-    )
-    table = markdown_table(rows, COLUMNS)
+    summary = {"benchmark": "geometry", "machine": machine(), "runs": rows}
+    path.write_text(json.dumps(summary | {"over_seeds": over_seeds(rows)}, indent=2))
+    table = markdown_table(rows, COLUMNS) + "\n" + markdown_table(over_seeds(rows), SPREAD_COLUMNS)
     (RESULTS / "geometry.md").write_text(table)
     print(table)
     print(f"-> {path}, .md")

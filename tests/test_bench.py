@@ -42,7 +42,7 @@ TINY = {
     "cli_startup": ["--runs", "1"],
     "decode_throughput": ["--seconds", "0.02", "--rounds", "1"],
     "geometry": ["--scenes", "{session}", "--preset", "tiny", "--iterations", "5"]
-    + ["--variants", "base", "binary"],
+    + ["--variants", "base", "binary", "--seeds", "0", "1"],
     "gpu": ["{session}", "--backends", "cpu", "--iterations", "5", "--material-iterations", "2"],
     "import_throughput": ["--events", "20000", "--warm-events", "2000", "--rounds", "1"],
     "mesh": ["{surface}", "--views", "8", "--texture-size", "128", "--resolution", "0.03"]
@@ -234,3 +234,19 @@ def test_paper_table_on_mic_scores_the_known_background_raw_and_after_one_gain(
     assert figures["views"]["values"] == [100]  # every view of transforms_train.json
     for key in ("render_psnr", "render_psnr_gain", "render_object_psnr_gain"):
         assert 5 < figures[key]["mean"] < 60, key
+
+
+def test_geometry_gives_each_figures_mean_and_spread_over_the_seeds():
+    import geometry
+
+    rows = [
+        {"scene": "s", "variant": "base", "iterations": 9, "seed": k, "normal_mae_deg": v}
+        for k, v in ((0, 5.0), (1, 9.0), (2, 7.0))
+    ]
+    rows.append(
+        {"scene": "s", "variant": "alpha", "iterations": 9, "seed": 0, "normal_mae_deg": 3.0}
+    )
+    base, alpha = geometry.over_seeds(rows)
+    assert base["seeds"] == "0 1 2" and alpha["seeds"] == "0"
+    assert base["normal_mae_deg mean"] == 7.0 and base["normal_mae_deg spread"] == 4.0
+    assert alpha["normal_mae_deg spread"] == 0.0 and "depth_rel_err mean" not in base
