@@ -9,6 +9,8 @@ gets it (the .glb written and read back), scored where the cameras saw the scene
   direction's mean distance, their mean, as a share of the object's radius (the true seen
   surface's bounding sphere). Distances to the nearest of 2 M points sampled over the other
   surface (--samples; at 2 M on single_object their spacing adds under 0.1 % of the radius).
+- The mesh's vertices: the distance of each to the true seen surface, its median and 90th
+  percentile as a share of the radius.
 - Normals: the mesh's at its sampled points against the true surface's at the nearest point.
 - The held-out views ray-cast through the mesh (each sensor pixel's ray, its lens included):
   the base color texture where the ray meets the mesh, scored as stage II's maps are scored
@@ -75,6 +77,7 @@ def surface_figures(
     on_mesh, face = trimesh.sample.sample_surface(mesh, samples, seed=1)
     to_truth, nearest = cKDTree(points).query(on_mesh, workers=-1)
     to_mesh, _ = cKDTree(on_mesh).query(points, workers=-1)
+    vertex_off, _ = cKDTree(points).query(asset.vertices, workers=-1)
     centre = 0.5 * (points.min(0) + points.max(0))
     radius = float(np.linalg.norm(points - centre, axis=1).max())
     n = mesh.face_normals[face]
@@ -86,6 +89,9 @@ def surface_figures(
         "mesh_to_truth_pct_radius": float(100 * to_truth.mean() / radius),
         "truth_to_mesh_pct_radius": float(100 * to_mesh.mean() / radius),
         "truth_covered_within_1pct": float((to_mesh <= 0.01 * radius).mean()),
+        # where the mesh's vertices lie: a skirt or a sheet shows in the upper percentiles
+        "vertices_median_pct_radius": float(100 * np.median(vertex_off) / radius),
+        "vertices_p90_pct_radius": float(100 * np.percentile(vertex_off, 90) / radius),
         "normal_mae_deg": float(angle.mean()),
         "normal_median_deg": float(np.median(angle)),
     }
