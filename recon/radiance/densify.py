@@ -47,6 +47,12 @@ class DensifyConfig:
     wide as the events' structure where stage I starts on it, else the ball the cameras
     converge on), grown by this factor, are pruned every ``every`` steps after ``start``, to
     the end of the run: what lies beyond is the background's (0: never)."""
+    min_weight: float = 0.0
+    """Gaussians whose largest blending weight (alpha times the transmittance in front) over
+    every pixel of the views rendered since the last densification stays under this are
+    pruned, at each densification and every ``every`` steps after it stops (E-4DGS: 0.015):
+    a Gaussian in the backdrop's colour makes no event, but neither does it show. 0: never;
+    the cpu and torch rasterizers count the weights, gsplat does not (nothing pruned)."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.start <= self.stop <= 1:
@@ -55,6 +61,8 @@ class DensifyConfig:
             )
         if self.every < 1 or self.reset_every < 0 or self.max_gaussians < 1:
             raise InputError("densify.every and max_gaussians must be at least 1, reset_every >= 0")
+        if not 0 <= self.min_weight < 1:
+            raise InputError("densify.min_weight is a blending weight: 0 (never) up to under 1")
 
 
 class Strategy:
@@ -102,6 +110,7 @@ class DefaultStrategy(Strategy):
     extent: float  # none larger than the scene survives
     confine_radius: float = 0.0  # scene units about ``center``; 0: not confined
     center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    min_weight: float = 0.0  # the largest blending weight a Gaussian must reach; 0: any
 
     @classmethod
     def for_run(
@@ -122,11 +131,19 @@ class DefaultStrategy(Strategy):
             extent=extent,
             confine_radius=config.confine * bound.radius if confine else 0.0,
             center=bound.center if confine else (0.0, 0.0, 0.0),
+            min_weight=config.min_weight,
         )
 
     def initialize_state(self) -> dict[str, torch.Tensor]:
-        """Each Gaussian's summed screen-space gradient and the views it was seen in."""
-        return {"grad_sum": torch.zeros(0), "count": torch.zeros(0)}
+        """Each Gaussian's summed screen-space gradient, the views it was seen in and its
+        largest blending weight, over the renders since the last densification (``views``
+        of them counted that weight)."""
+        return {
+            "grad_sum": torch.zeros(0),
+            "count": torch.zeros(0),
+            "peak": torch.zeros(0),
+            "views": torch.zeros(()),
+        }
 
     def step_post_backward(
         self,
@@ -141,12 +158,12 @@ class DefaultStrategy(Strategy):
             _observe(state, r, grid.width, grid.height)
         if self.start < step <= self.stop and step % self.every == 0:
             self.densify(gaussians, optimizer, state)
-        elif self.confine_radius > 0 and step > self.start and step % self.every == 0:
-            # after densification stops, what drifts out of the foreground still goes
-            outside = ~self.inside(gaussians)
-            if outside.any():
-                _select(gaussians, optimizer, ~outside)
-                _fit(state, len(gaussians), gaussians.means.device)
+        elif step > self.start and step % self.every == 0:
+            # after densification stops, what drifts out of the foreground or fades still goes
+            keep = self.inside(gaussians) & self.shown(state, len(gaussians))
+            if not keep.all():
+                _select(gaussians, optimizer, keep)
+            _restart(state, len(gaussians), gaussians.means.device)
         if self.reset_every and step % self.reset_every == 0 and step <= self.stop:
             reset_opacities(gaussians, optimizer)
 
@@ -157,6 +174,7 @@ class DefaultStrategy(Strategy):
         n = len(model)
         device = model.means.device
         _fit(state, n, device)
+        shown = self.shown(state, n)
         grad = state["grad_sum"] / state["count"].clamp(min=1)
         hot = grad >= self.grad_threshold
         big = model.scales.max(1).values > self.split_size
@@ -180,6 +198,7 @@ class DefaultStrategy(Strategy):
             new = {k: torch.cat([new[k], part[k]]) for k in PARAMS}
         _append(model, optimizer, new)
         keep = torch.ones(len(model), dtype=torch.bool, device=device)
+        keep[:n] = shown  # the new ones have not been rendered yet
         keep[split] = False
         keep &= model.opacities >= self.min_opacity
         keep &= model.scales.max(1).values <= self.extent  # none larger than the scene
@@ -187,8 +206,7 @@ class DefaultStrategy(Strategy):
         keep &= self.inside(model)
         pruned = int((~keep).sum()) - len(split)
         _select(model, optimizer, keep)
-        state["grad_sum"] = torch.zeros(len(model), device=device)
-        state["count"] = torch.zeros(len(model), device=device)
+        _restart(state, len(model), device)
         return {"cloned": len(clone), "split": len(split), "pruned": pruned}
 
     def inside(self, model: Gaussians) -> torch.Tensor:
@@ -199,11 +217,27 @@ class DefaultStrategy(Strategy):
         center = torch.as_tensor(self.center, dtype=means.dtype, device=means.device)
         return (means - center).norm(dim=1) <= self.confine_radius
 
+    def shown(self, state: dict[str, torch.Tensor], n: int) -> torch.Tensor:
+        """[n] bool: the Gaussians whose largest blending weight since the last densification
+        reached min_weight (all when it is 0 or no render since counted the weights)."""
+        _fit(state, n, state["grad_sum"].device)
+        if self.min_weight <= 0 or not state["views"] > 0:
+            return torch.ones(n, dtype=torch.bool, device=state["peak"].device)
+        return state["peak"] >= self.min_weight
+
 
 def _fit(state: dict[str, torch.Tensor], n: int, device: torch.device) -> None:
-    if len(state["grad_sum"]) != n or state["grad_sum"].device != device:
-        state["grad_sum"] = torch.zeros(n, device=device)
-        state["count"] = torch.zeros(n, device=device)
+    """The state made anew for n Gaussians when it is not theirs (their number changed, or
+    saved before it counted the weights)."""
+    if "peak" not in state or len(state["grad_sum"]) != n or state["grad_sum"].device != device:
+        _restart(state, n, device)
+
+
+def _restart(state: dict[str, torch.Tensor], n: int, device: torch.device) -> None:
+    """Nothing observed yet for n Gaussians."""
+    for name in ("grad_sum", "count", "peak"):
+        state[name] = torch.zeros(n, device=device)
+    state["views"] = torch.zeros((), device=device)
 
 
 @torch.no_grad()
@@ -219,6 +253,9 @@ def _observe(state: dict[str, torch.Tensor], render: Render, width: int, height:
     seen = render.visible.to(g.dtype)  # as weights, not an index: no wait for the device
     state["grad_sum"] += g.norm(dim=1) * seen
     state["count"] += seen
+    if render.peak is not None:
+        state["peak"] = torch.maximum(state["peak"], render.peak.to(g.dtype))
+        state["views"] += 1
 
 
 @torch.no_grad()

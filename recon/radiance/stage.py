@@ -440,8 +440,10 @@ def train_radiance(
                     q = field.gaussians.quats
                     q.data = F.normalize(q.data, dim=1)  # any length is a rotation; keep off zero
             with timer("densification"):
+                # the background alone shows no Gaussian: no weight of theirs to count
+                shown = [] if hidden else renders
                 strategy.step_post_backward(
-                    field.gaussians, optimizer, strategy_state, step, renders, grid
+                    field.gaussians, optimizer, strategy_state, step, shown, grid
                 )
             n = len(field.gaussians)
             if step % CHECK_EVERY == 0 or step == config.iterations:

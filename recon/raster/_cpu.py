@@ -516,14 +516,17 @@ def _tile_buffers(layout, t, channels):
 
 
 @numba.njit(cache=True, parallel=True, fastmath=FASTMATH)
-def _composite_fwd(layout, terms, values, out, final_t, last):
+def _composite_fwd(layout, terms, values, out, final_t, last, peak):
     """Per pixel: out = the sum of w values, final_t = its transmittance, last = how many
-    entries of its row's list it went through. A tile's row at a time, Gaussian by Gaussian
-    over the columns each covers, front to back."""
-    width, workers = layout[3], layout[-1]
+    entries of its row's list it went through; per intersection: peak = its largest w (a
+    tile is one thread's: no two write one entry). A tile's row at a time, Gaussian by
+    Gaussian over the columns each covers, front to back."""
+    tile_start, width, workers = layout[0], layout[3], layout[-1]
     channels = values.shape[1]
     for worker in numba.prange(workers):
         for t in _share(layout, worker):
+            s = tile_start[t]
+            peak[s : tile_start[t + 1]] = 0.0
             local, vals, rows, row_len = _tile_buffers(layout, t, channels)
             _gather(layout, t, terms, values, local, vals, rows, row_len)
             x0, y0, cols, tile_rows = _tile_area(layout, t)
@@ -544,6 +547,7 @@ def _composite_fwd(layout, terms, values, out, final_t, last):
                     walking, walk, ratio, ratio_step = _exp_walk(
                         local, k, mx, ha, bdy, hcdy2, lo, hi
                     )
+                    top = 0.0
                     for px in range(lo, hi + 1):
                         g = walk
                         walk *= ratio
@@ -566,10 +570,12 @@ def _composite_fwd(layout, terms, values, out, final_t, last):
                             finished += 1
                             continue
                         w = alpha * T[i]
+                        top = max(top, w)
                         for c in range(channels):
                             acc[i, c] += w * vals[k, c]
                         T[i] = next_t
                         n[i] = j + 1
+                    peak[s + k] = max(peak[s + k], top)
                     if finished == cols:
                         break
                 for i in range(cols):
@@ -660,6 +666,16 @@ def _composite_bwd(layout, terms, values, final_t, last, v_out, v_alpha, grads):
                     row[5] += v_o
                     for ch in range(channels):
                         row[SPLAT + ch] += v_vals[ch]
+
+
+@numba.njit(cache=True, parallel=True)
+def _max_rows(gaussian_start, slots, peak, out):
+    """out[g] = the largest of Gaussian g's intersections' ``peak`` (0 for none)."""
+    for g in numba.prange(len(gaussian_start) - 1):
+        top = 0.0
+        for j in range(gaussian_start[g], gaussian_start[g + 1]):
+            top = max(top, peak[slots[j]])
+        out[g] = top
 
 
 @numba.njit(cache=True, parallel=True)
@@ -798,6 +814,7 @@ class Composited:
     last: np.ndarray  # [H * W] how many entries of its row's list each pixel went through
     terms: np.ndarray  # [N, 11] the splats' terms (_splat_terms)
     values: np.ndarray  # [N, C]
+    peak: np.ndarray  # [N] each Gaussian's largest blending weight w over the pixels
 
 
 def lanes(channels: int) -> int:
@@ -844,8 +861,10 @@ def composite(
     pixels = tiles.width * tiles.height
     out = np.empty((pixels, values.shape[1]))
     final_t, last = np.empty(pixels), np.empty(pixels, np.int64)
-    _composite_fwd(tiles.layout(), terms, values, out, final_t, last)
-    return Composited(out, final_t, last, terms, values)
+    at_intersections, peak = np.empty(len(tiles.owner)), np.empty(len(terms))
+    _composite_fwd(tiles.layout(), terms, values, out, final_t, last, at_intersections)
+    _max_rows(tiles.gaussian_start, tiles.slots, at_intersections, peak)
+    return Composited(out, final_t, last, terms, values, peak)
 
 
 def composite_backward(
@@ -877,7 +896,8 @@ DEPTH_ALPHA_MIN = 1e-10  # expected depth = sum w z / max(alpha, this)
 
 class _Rasterize(torch.autograd.Function):
     """(means, quats, scales, opacities, features, viewmat, means2d) -> (color [H * W, D],
-    expected depth, alpha [H * W], normal [H * W, 3]). ``means2d`` holds the projected centres
+    expected depth, alpha [H * W], normal [H * W, 3], each Gaussian's largest blending weight
+    [N] (no gradient)). ``means2d`` holds the projected centres
     and takes no part in the forward pass: its gradient is the screen-space one that
     densification reads."""
 
@@ -899,10 +919,12 @@ class _Rasterize(torch.autograd.Function):
         depth, alpha = torch.empty(pixels, dtype=dtype), torch.empty(pixels, dtype=dtype)
         outputs = (color, depth, alpha, normal)
         _outputs(result.out, result.final_t, D, *(x.numpy() for x in outputs))
-        return tuple(x.to(features.device) for x in outputs)
+        peak = torch.from_numpy(result.peak).to(features.device, dtype)
+        ctx.mark_non_differentiable(peak)
+        return *(x.to(features.device) for x in outputs), peak
 
     @staticmethod
-    def backward(ctx, v_color, v_depth, v_alpha, v_normal):
+    def backward(ctx, v_color, v_depth, v_alpha, v_normal, _v_peak):
         view, (means, quats, scales), projection, tiles, result, D = ctx.state
         pixels = len(result.final_t)
         v_out, v_alpha_all = np.empty((pixels, result.values.shape[1])), np.empty(pixels)
@@ -1000,7 +1022,7 @@ def rasterize_cpu(
     tiles = intersect(projection, arrays[3], W, H)
     # a leaf of its own: the gradient of the projected centres (densification reads it)
     means2d = _back(projection.means2d, means).requires_grad_(means.requires_grad)
-    color, depth, alpha, normal = _Rasterize.apply(
+    color, depth, alpha, normal, peak = _Rasterize.apply(
         means,
         quats,
         scales,
@@ -1017,4 +1039,5 @@ def rasterize_cpu(
         normal.reshape(H, W, 3),
         means2d,
         torch.from_numpy(tiles.visible).to(means.device),
+        peak,
     )

@@ -126,9 +126,9 @@ def _alphas(pp: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tenso
 
 def _composite(
     alpha: torch.Tensor, pix: torch.Tensor, values: torch.Tensor, n_pixels: int
-) -> tuple[torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Front-to-back compositing of per-pair ``values`` [P, D]; pairs sorted by pixel, in depth
-    order within each pixel. Returns (sum w values [n_pixels, D], sum w [n_pixels])."""
+    order within each pixel. Returns (sum w values [n_pixels, D], sum w [n_pixels], w [P])."""
     log_t = torch.log1p(-alpha).double()
     running = torch.cumsum(log_t, 0) - log_t  # exclusive, over all pairs
     first = torch.ones_like(pix, dtype=torch.bool)
@@ -140,7 +140,7 @@ def _composite(
         keep = T * (1 - alpha) > T_MIN
     w = torch.where(keep, T * alpha, 0)
     out = values.new_zeros(n_pixels, values.shape[1]).index_add(0, pix, w[:, None] * values)
-    return out, alpha.new_zeros(n_pixels).index_add(0, pix, w)
+    return out, alpha.new_zeros(n_pixels).index_add(0, pix, w), w
 
 
 def rasterize_torch(
@@ -165,6 +165,7 @@ def rasterize_torch(
     with torch.no_grad():  # as 3DGS's radii > 0: in view, whether or not occluded
         visible = _boxes(proj, opacities, W, 0, H)[4] > 0
     out, acc = None, None
+    peak = torch.zeros(len(means), dtype=opacities.dtype, device=means.device)
     for y0, y1 in _bands(proj, opacities, W, H):
         with torch.no_grad():
             gid, px, py = _pairs(proj, opacities, W, y0, y1)
@@ -173,8 +174,9 @@ def rasterize_torch(
             pix, order = torch.sort((py * W + px).index_select(0, hit), stable=True)
             gid = gid.index_select(0, hit).index_select(0, order)
         pp = params.index_select(0, gid)
-        o, a = _composite(_alphas(pp, pix % W, pix // W), pix, pp[:, 6:], H * W)
+        o, a, w = _composite(_alphas(pp, pix % W, pix // W), pix, pp[:, 6:], H * W)
         out, acc = (o, a) if out is None else (out + o, acc + a)
+        peak.scatter_reduce_(0, gid, w.detach(), "amax")
     depth = out[:, D] / acc.clamp(min=1e-10)
     return Render(
         out[:, :D].reshape(H, W, D),
@@ -183,6 +185,7 @@ def rasterize_torch(
         out[:, D + 1 :].reshape(H, W, 3),
         means2d,
         visible,
+        peak,
     )
 
 

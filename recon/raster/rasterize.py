@@ -46,6 +46,9 @@ class Render:
     normal: torch.Tensor  # [H, W, 3] composited unit normals of the Gaussians, camera frame
     means2d: torch.Tensor  # [..., N, 2] projected centres, pixels; their .grad drives densification
     visible: torch.Tensor  # [N] bool, the Gaussians that touched a pixel
+    # [N] each Gaussian's largest blending weight (alpha times the transmittance before it)
+    # over the pixels, no gradient; None where the backend does not count it (gsplat)
+    peak: torch.Tensor | None = None
 
 
 def gaussian_normals(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:

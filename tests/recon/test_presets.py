@@ -77,6 +77,8 @@ NEW = {f"loss.{t}.start": 0.0 for t in ("anchor", "spread", "smooth", "curvature
 NEW |= {f"loss.{t}.start": 0.0 for t in ("background_tv", "alpha", "opacity", "flatten")}
 # none started on the events' stereo, whose own settings then do nothing
 NEW |= {"init.on_events": 0.0} | {f"init.stereo.{k}": v for k, v in names(StereoConfig())}
+# none pruned by its largest blending weight
+NEW |= {"densify.min_weight": 0.0}
 STAGE_TWO = {
     "distill_weight": "loss.distill",
     "anchor_weight": "loss.anchor",
@@ -143,6 +145,7 @@ def test_paper_is_the_methods_stage_one(method_summary):
     ours += ("background_tv", "opacity")
     assert all(getattr(paper.loss, name).weight == 0 for name in ours)
     assert paper.background.first == 0 and paper.densify.confine == 0
+    assert paper.densify.min_weight == 0
 
 
 def test_paper_is_the_methods_stage_two(method_summary):

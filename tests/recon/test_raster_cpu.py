@@ -87,6 +87,7 @@ def compare(case, channels, width, height, rtol=1e-7, atol=1e-9):
     (r_t, maps_t, grads_t), (r_c, maps_c, grads_c) = outs["torch"], outs["cpu"]
     torch.testing.assert_close(maps_c, maps_t, rtol=rtol, atol=atol)
     assert torch.equal(r_c.visible, r_t.visible)
+    torch.testing.assert_close(r_c.peak, r_t.peak, rtol=rtol, atol=atol)
     names = ["means", "quats", "log_scales", "opacities", "features", "viewmat", "background"]
     for name, a, b in zip(names + ["means2d"], grads_c, grads_t, strict=True):
         assert a is not None and torch.isfinite(a).all(), name

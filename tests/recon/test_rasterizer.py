@@ -143,3 +143,19 @@ def test_a_non_finite_gaussian_is_refused_not_rendered(backend):
         rasterize(bad, quats, log_scales.exp(), opac, colors, tiny_camera(), backend=backend)
     with pytest.raises(ValueError, match=r"quats must be \[7, 4\], not \[7, 3\]"):
         rasterize(means, quats[:, :3], log_scales.exp(), opac, colors, tiny_camera())
+
+
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+def test_each_gaussians_largest_blending_weight(backend):
+    """Its peak: alpha times the light the Gaussians in front leave, at its best pixel; a
+    Gaussian out of view has none."""
+    cam = tiny_camera()
+    cam.K = torch.tensor([[16.0, 0, 7.0], [0, 16.0, 5.0], [0, 0, 1]], dtype=torch.float64)
+    # on the optical axis at depths 2 and 3 (the back one narrower on screen), one far aside
+    means = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [9.0, 0.0, 0.0]], dtype=torch.float64)
+    scales = torch.tensor([[0.2] * 3, [0.1] * 3, [0.1] * 3], dtype=torch.float64)
+    quats = torch.tensor([[1.0, 0, 0, 0]] * 3, dtype=torch.float64)
+    opac = torch.tensor([0.4, 0.5, 0.9], dtype=torch.float64)
+    r = rasterize(means, quats, scales, opac, torch.ones(3, 3, dtype=torch.float64), cam,
+                  backend=backend)  # fmt: skip
+    torch.testing.assert_close(r.peak, torch.tensor([0.4, 0.5 * 0.6, 0.0], dtype=torch.float64))
