@@ -22,6 +22,8 @@ directions, never seen by the events) and scored:
   where the truth has a surface; depth error: a share of the distance there;
 - beside them stage I's radiance (whole image), and both stages on the object's pixels alone
   with what the best constant color scores there;
+- stage I's silhouette (alpha >= 0.5) against the object's pixels (IoU) and the backdrop seen
+  through: the share of the pixels off the object where alpha is under 0.5;
 - base color: the release has no albedo, so it cannot be scored.
 Raw figures first; then after one gain per color channel (no offset: the events leave only
 that undetermined), fitted once over all held-out views together. An affine fit per view is
@@ -52,10 +54,12 @@ from evcap.images import srgb
 from evcap.recon.evaluate.lpips import Lpips
 from evcap.recon.evaluate.metrics import (
     affine_per_view_psnr,
+    background_clear,
     depth_rel_err,
     gain_fit,
     normal_mae_deg,
     psnr,
+    silhouette_iou,
     ssim_map,
 )
 from evcap.recon.evaluate.views import render_views
@@ -196,6 +200,8 @@ def score(
     figures.update(object_figures(stage_1["radiance"], truth.radiance, mask, "object"))
     figures["radiance_normal_mae_deg"] = normal_mae_deg(stage_1["normal"], truth.normal)
     figures["depth_rel_err"] = depth_rel_err(stage_1["depth"], truth.depth)
+    figures["background_clear"] = background_clear(stage_1["alpha"], mask)
+    figures["silhouette_iou"] = silhouette_iou(stage_1["alpha"], mask)
     shown = np.unique(np.linspace(0, len(truth) - 1, min(4, len(truth))).round().astype(int))
     stage_1_shown = stage_1["radiance"][shown] * figures["radiance_gain_rgb"]
     del stage_1, radiance
@@ -398,6 +404,13 @@ def table(name: str, label: str, figures: dict[str, dict]) -> str:
             values.update(extra)
             cells = [f"{values[k]:.3g}" if k in values else "" for _, k in COLUMNS[1:]]
             lines.append("| " + " | ".join([f"method, {scene} ({METHOD_RUN})", *cells]) + " |")
+    if "silhouette_iou" in figures:
+        lines.append("")
+        lines.append(
+            f"Stage I's silhouette (alpha >= 0.5) against the truth's: IoU "
+            f"{cell('silhouette_iou')}; the backdrop seen through (alpha < 0.5 off the object): "
+            f"{cell('background_clear')} of its pixels."
+        )
     diagnostic = figures.get("render_psnr_affine_per_view")
     if diagnostic is not None:
         lines.append("")

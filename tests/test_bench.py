@@ -198,6 +198,8 @@ def test_paper_table_scores_both_stages_on_every_held_out_view(nerf_scene, monke
         assert np.isfinite(figures[key]["mean"]), key
     for key in ("render_object_psnr", "render_object_psnr_gain", "object_psnr_constant"):
         assert np.isfinite(figures[key]["mean"]), key
+    for key in ("silhouette_iou", "background_clear"):
+        assert 0 <= figures[key]["mean"] <= 1, key
     assert figures["render_lpips"]["mean"] == paper_table.NO_LPIPS
     assert figures["base_color_psnr"]["mean"] == paper_table.NO_ALBEDO
     # the gain is fitted once over all views: it can only bring the pixels closer in linear
@@ -205,7 +207,7 @@ def test_paper_table_scores_both_stages_on_every_held_out_view(nerf_scene, monke
     assert figures["render_psnr_gain"]["mean"] > figures["render_psnr"]["mean"] - 3
     table = (tmp_path / "paper_table-sphere-white.md").read_text()
     assert "evcap, sphere, tiny, background white" in table and "method, 7-scene mean" in table
-    assert "seeds 0 1" in table
+    assert "seeds 0 1" in table and "silhouette (alpha >= 0.5) against the truth's" in table
     sheet = cv2.imread(str(tmp_path / "paper_table" / "sphere-tiny-x1-white-seed0.png"))
     assert sheet.shape == (4 * 36, 5 * 48, 3)  # four views, each beside its truth
     again = paper_table.main(args[:-1])  # seed 0 is read back, not run again
