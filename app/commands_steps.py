@@ -8,7 +8,12 @@ import argparse
 from pathlib import Path
 
 from evcap.app.command import Command
-from evcap.app.reconstruct_flags import add_reconstruct_arguments, options_from, show_settings
+from evcap.app.reconstruct_flags import (
+    add_bounds_argument,
+    add_reconstruct_arguments,
+    options_from,
+    show_settings,
+)
 from evcap.errors import InputError
 
 # light: the reconstruction's names and choices, without torch
@@ -485,12 +490,9 @@ def _mesh_arguments(p: argparse.ArgumentParser) -> None:
         help="the voxel size of the depth fusion, in the scene's units (default: the "
         f"surface's extent / {MeshConfig.voxels_across})",
     )
-    p.add_argument(
-        "--bounds",
-        type=float,
-        nargs=6,
-        metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
-        help="keep only the box between these corners (scene units, z up; `evcap view` "
+    add_bounds_argument(
+        p,
+        "keep only the box between these corners (scene units, z up; `evcap view` "
         "shows the axes): the object without stage I's backdrop",
     )
     for flag, default, text in (

@@ -28,10 +28,18 @@ SHORTHANDS = {
     "zero_events": "stage1.event_loss.zero_events",
     "noise_filter": "stage1.windows.noise_filter_ms",
     "refine_poses": "stage1.poses.refine",
+    "bounds": "stage1.densify.bounds",
     "material_iterations": "stage2.iterations",
     "visibility": "stage2.visibility",
     "indirect": "stage2.indirect",
 }
+
+
+def add_bounds_argument(p: argparse._ActionsContainer, text: str) -> None:
+    """``--bounds X0 Y0 Z0 X1 Y1 Z1``: a box in the scene (reconstruct's and export's)."""
+    p.add_argument(
+        "--bounds", type=float, nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"), help=text
+    )
 
 
 def add_reconstruct_arguments(
@@ -85,6 +93,11 @@ def add_reconstruct_arguments(
         choices=REFINE_POSES,
         help="stage I corrects the camera's path with the events and writes it to "
         "OUT/poses.h5 (default auto: when `evcap poses` estimated it)",
+    )
+    add_bounds_argument(
+        g,
+        "the object's box (scene units, as `evcap export --bounds`): Gaussians that leave it "
+        "are pruned, what lies beyond is the background's (default: none)",
     )
     g.add_argument("--material-iterations", type=int, metavar="N", help="stage II steps")
     for effect, what in (("visibility", "shadows"), ("indirect", "light from other surfaces")):
@@ -143,6 +156,13 @@ def options_from(
             if getattr(args, effect) is not None:
                 raise InputError(f"--{effect} and --without {effect} say different things")
             flags[f"stage2.{effect}"] = "off"
+    if args.bounds and not all(
+        a < b for a, b in zip(args.bounds[:3], args.bounds[3:], strict=True)
+    ):
+        raise InputError(
+            f"--bounds: each of the max corner {args.bounds[3:]} must exceed the min "
+            f"{args.bounds[:3]}"
+        )
     twice = sorted(set(given) & set(flags))
     if twice:
         raise InputError(f"{', '.join(twice)}: given both by --set and by its own flag")

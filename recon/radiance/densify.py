@@ -47,6 +47,10 @@ class DensifyConfig:
     wide as the events' structure where stage I starts on it, else the ball the cameras
     converge on), grown by this factor, are pruned every ``every`` steps after ``start``, to
     the end of the run: what lies beyond is the background's (0: never)."""
+    bounds: tuple[float, float, float, float, float, float] | None = None
+    """The foreground's box, when given (x0 y0 z0 x1 y1 z1: its corners, scene units, as
+    `evcap export --bounds` takes it): Gaussians outside it are pruned as they are outside
+    ``confine``'s ball; None: no box."""
     min_weight: float = 0.0
     """Gaussians whose largest blending weight (alpha times the transmittance in front) over
     every pixel of the views rendered since the last densification stays under this are
@@ -61,6 +65,14 @@ class DensifyConfig:
             )
         if self.every < 1 or self.reset_every < 0 or self.max_gaussians < 1:
             raise InputError("densify.every and max_gaussians must be at least 1, reset_every >= 0")
+        if self.bounds is not None and (
+            len(self.bounds) != 6
+            or not all(a < b for a, b in zip(self.bounds[:3], self.bounds[3:], strict=True))
+        ):
+            raise InputError(
+                "stage1.densify.bounds is a box: x0 y0 z0 x1 y1 z1, each of the max corner "
+                "above the min"
+            )
         if not 0 <= self.min_weight < 1:
             raise InputError("densify.min_weight is a blending weight: 0 (never) up to under 1")
 
@@ -110,6 +122,7 @@ class DefaultStrategy(Strategy):
     extent: float  # none larger than the scene survives
     confine_radius: float = 0.0  # scene units about ``center``; 0: not confined
     center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    box: tuple[float, ...] | None = None  # x0 y0 z0 x1 y1 z1: none outside survives
     min_weight: float = 0.0  # the largest blending weight a Gaussian must reach; 0: any
 
     @classmethod
@@ -131,6 +144,7 @@ class DefaultStrategy(Strategy):
             extent=extent,
             confine_radius=config.confine * bound.radius if confine else 0.0,
             center=bound.center if confine else (0.0, 0.0, 0.0),
+            box=config.bounds,
             min_weight=config.min_weight,
         )
 
@@ -210,12 +224,17 @@ class DefaultStrategy(Strategy):
         return {"cloned": len(clone), "split": len(split), "pruned": pruned}
 
     def inside(self, model: Gaussians) -> torch.Tensor:
-        """[N] bool: the Gaussians inside the foreground's ball (all when not confined)."""
+        """[N] bool: the Gaussians inside the foreground's ball and box (all when neither)."""
         means = model.means.detach()
-        if self.confine_radius <= 0:
-            return torch.ones(len(means), dtype=torch.bool, device=means.device)
-        center = torch.as_tensor(self.center, dtype=means.dtype, device=means.device)
-        return (means - center).norm(dim=1) <= self.confine_radius
+        inside = torch.ones(len(means), dtype=torch.bool, device=means.device)
+        if self.confine_radius > 0:
+            center = torch.as_tensor(self.center, dtype=means.dtype, device=means.device)
+            inside &= (means - center).norm(dim=1) <= self.confine_radius
+        if self.box is not None:
+            box = torch.as_tensor(self.box, dtype=means.dtype, device=means.device)
+            lo, hi = box[:3], box[3:]
+            inside &= ((means >= lo) & (means <= hi)).all(1)
+        return inside
 
     def shown(self, state: dict[str, torch.Tensor], n: int) -> torch.Tensor:
         """[n] bool: the Gaussians whose largest blending weight since the last densification

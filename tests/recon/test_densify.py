@@ -87,3 +87,13 @@ def test_gaussians_that_never_show_are_pruned():
 def test_a_blending_weight_of_one_is_refused():
     with pytest.raises(InputError, match="densify.min_weight"):
         DensifyConfig(min_weight=1.0)
+
+
+def test_a_given_box_holds_the_foreground():
+    config = DensifyConfig(start=0.1, stop=0.5, every=10, bounds=(0.5, -1, -1, 1.5, 1, 1))
+    s = DefaultStrategy.for_run(config, 100, 1.0, None)  # no ball: the box alone
+    points = np.array([[1.0, 0, 0], [1.4, 0.9, -0.9], [1.6, 0, 0], [1.0, 0, 1.2]])
+    gaussians, optimizer = field(points)
+    state = s.initialize_state()
+    s.step_post_backward(gaussians, optimizer, state, 20, [], RenderGrid.__new__(RenderGrid))
+    assert torch.equal(gaussians.means.detach(), torch.tensor(points[:2], dtype=torch.float32))

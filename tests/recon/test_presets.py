@@ -77,8 +77,8 @@ NEW = {f"loss.{t}.start": 0.0 for t in ("anchor", "spread", "smooth", "curvature
 NEW |= {f"loss.{t}.start": 0.0 for t in ("background_tv", "alpha", "opacity", "flatten")}
 # none started on the events' stereo, whose own settings then do nothing
 NEW |= {"init.on_events": 0.0} | {f"init.stereo.{k}": v for k, v in names(StereoConfig())}
-# none pruned by its largest blending weight
-NEW |= {"densify.min_weight": 0.0}
+# none pruned by its largest blending weight, nor held in a given box
+NEW |= {"densify.min_weight": 0.0, "densify.bounds": None}
 STAGE_TWO = {
     "distill_weight": "loss.distill",
     "anchor_weight": "loss.anchor",

@@ -120,6 +120,7 @@ def test_the_flags_make_the_options_record(tmp_path):
         "--refractory-bound",
         "--without=visibility",
         "--without=edge-tv",
+        *("--bounds", "-1", "-1", "0", "1", "1", "2"),
     )
     options = options_from(args, stage="all")
     resolved = options.resolved()
@@ -129,6 +130,11 @@ def test_the_flags_make_the_options_record(tmp_path):
     assert resolved.stage1.windows.refractory_bound
     assert resolved.stage2.visibility == "off" and options.ablate == ("tv",)
     assert "stage1.densify.every = 20" in show_settings(options)
+    assert resolved.stage1.densify.bounds == (-1, -1, 0, 1, 1, 2)
+    with pytest.raises(InputError, match=r"--bounds: each of the max corner .* must exceed"):
+        options_from(parse("--bounds", "1", "-1", "0", "1", "1", "2"))
+    with pytest.raises(InputError, match=r"stage1.densify.bounds is a box"):
+        options_from(parse("--set=stage1.densify.bounds=[1, 2, 3]")).resolved()
     with pytest.raises(InputError, match="stage1.iterations: given both"):
         options_from(parse("--iterations=3", "--set=stage1.iterations=4"))
     with pytest.raises(InputError, match="--visibility and --without visibility"):
