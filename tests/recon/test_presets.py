@@ -93,7 +93,7 @@ STAGE_TWO |= {f"lr_{k}": f"lr.{k}" for k in ("indirect", "light")}
 
 
 # settings a preset changed since, by measurement (each preset's TUNED_ON says on what)
-CHANGED = {"fast": {"init.on_events": 1.0}}
+CHANGED = {"fast": {"init.on_events": 1.0, "loss.alpha.weight": 0.1}}
 
 
 def as_before(config, renamed: dict[str, str], changed: dict | None = None) -> dict:
@@ -116,7 +116,11 @@ def as_before(config, renamed: dict[str, str], changed: dict | None = None) -> d
 @pytest.mark.parametrize("name", PRESET_NAMES)
 def test_every_preset_resolves_to_the_settings_it_had(name):
     settings = preset(name)
-    assert as_before(settings.stage1, STAGE_ONE, CHANGED.get(name)) == BEFORE[name]["stage1"]
+    changed = CHANGED.get(name, {})
+    # a changed setting's value before is left out with it
+    was = {old for old, new in STAGE_ONE.items() if new in changed}
+    before = {k: v for k, v in BEFORE[name]["stage1"].items() if k not in was}
+    assert as_before(settings.stage1, STAGE_ONE, changed) == before
     assert as_before(settings.stage2, STAGE_TWO) == BEFORE[name]["stage2"]
 
 
