@@ -148,7 +148,7 @@ def load_checkpoint(
         background = Background.from_faces(state["background"])
     except (KeyError, RuntimeError, ValueError) as e:
         raise InputError(f"{path}: not a readable stage-I checkpoint ({e})") from e
-    field = RadianceField(gaussians, background, backend, config.background.known)
+    field = RadianceField(gaussians, background, backend, config.background.known, config.surfels)
     return field.to(device), config
 
 

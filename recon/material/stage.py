@@ -39,7 +39,13 @@ from evcap.recon.radiance.config import RadianceConfig
 from evcap.recon.radiance.losses import anchor_loss, checked_loss
 from evcap.recon.radiance.stage import CHECK_EVERY, RadianceField, TrainingData
 from evcap.recon.radiance.terms import Term, total_loss
-from evcap.recon.raster.rasterize import Camera, Render, gaussian_normals, rasterize
+from evcap.recon.raster.rasterize import (
+    Camera,
+    Render,
+    gaussian_normals,
+    quat_to_rotmat,
+    rasterize,
+)
 from evcap.recon.resume import Steps, digest, random_states, restore_random_states
 from evcap.recon.scene.cube_map import cube_directions, cube_lookup, mip_chain
 from evcap.recon.scene.gaussians import Background, Gaussians
@@ -101,6 +107,7 @@ class MaterialField(torch.nn.Module):
         backend: Backend = "cpu",
         bounce: Bounce | None = None,
         backdrop: torch.Tensor | None = None,
+        surfels: bool = False,
     ) -> None:
         super().__init__()
         self.gaussians = gaussians.requires_grad_(False)
@@ -119,6 +126,8 @@ class MaterialField(torch.nn.Module):
         for name in ("receivers", "sources", "weights"):
             self.register_buffer(f"bounce_{name}", getattr(bounce, name, None))
         self.backend = backend
+        self.surfels = surfels  # the Gaussians rendered as stage I rendered them
+        self.register_buffer("surfel_discs", torch.tensor(surfels))  # saved with the state
         # base_variation at the start under each choice of effects, where "auto" chose them
         self.start_variation: dict[str, float] = {}
 
@@ -142,8 +151,9 @@ class MaterialField(torch.nn.Module):
             backend,
             bounce,
             state.get("backdrop"),
+            bool(state.get("surfel_discs", False)),
         )
-        field.load_state_dict(state)
+        field.load_state_dict({"surfel_discs": torch.tensor(False), **state})
         return field
 
     @property
@@ -234,6 +244,7 @@ class MaterialField(torch.nn.Module):
             cam,
             background=bg,
             backend=self.backend,
+            surfels=self.surfels,
         )
 
 
@@ -253,6 +264,8 @@ def new_material_field(
     with torch.no_grad():
         if config.normals_from == "planes" and (g.opacities > NEIGHBOUR_OPACITY).sum() >= 3:
             normals = plane_normals(g.means, g.opacities)
+        elif radiance.surfels:  # a disc's normal is its third axis
+            normals = quat_to_rotmat(g.quats)[:, :, 2]
         else:
             normals = gaussian_normals(g.quats, g.scales)
         cams = torch.as_tensor(
@@ -279,6 +292,7 @@ def new_material_field(
             radiance.backend,
             baked.bounce if visibility and indirect else None,
             radiance.backdrop,
+            radiance.surfels,
         ).to(g.means.device)
         start_material(field, target, cams)
         if len(choices) == 1:

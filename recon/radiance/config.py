@@ -77,6 +77,11 @@ class RadianceConfig:
     """The render scale, relative to the sensor (1: its pixels)."""
     sh_degree: int = 1
     """The view dependence of the Gaussians' radiance (0..3)."""
+    surfels: bool = False
+    """Each Gaussian a flat disc whose alpha and depth each pixel's ray takes where it meets
+    it (2DGS; recon/raster/surfels.py), not a projected 3D Gaussian: a surface's depth exact
+    across a tilted disc, outlines as sharp as the discs. Their third scale is not used (held
+    at a hundredth of the smaller of the other two from the start)."""
     coarse: CoarseConfig = CoarseConfig()
     """Coarse to fine."""
     init: InitConfig = InitConfig()

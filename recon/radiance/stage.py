@@ -159,11 +159,13 @@ class RadianceField(torch.nn.Module):
         background: Background,
         backend: Backend = "cpu",
         backdrop: tuple[float, float, float] | None = None,
+        surfels: bool = False,
     ) -> None:
         super().__init__()
         self.gaussians = gaussians
         self.background = background
         self.backend = backend
+        self.surfels = surfels  # config.surfels: the Gaussians rendered as flat discs
         # a known background (config.background.known): seen in place of the learnt one
         known = None if backdrop is None else torch.tensor(backdrop, dtype=torch.float32)
         self.register_buffer("backdrop", known)
@@ -219,6 +221,7 @@ class RadianceField(torch.nn.Module):
             cam,
             background=bg,
             backend=self.backend,
+            surfels=self.surfels,
         )
 
 
@@ -312,8 +315,11 @@ def _new_field(
         distance = np.sqrt(data.volume.near * data.volume.far)
     footprint = distance / float(data.grid.K[0, 0])
     gaussians = Gaussians.random(points, config.sh_degree, g, init.size_px * footprint)
+    if config.surfels:
+        gaussians.flatten_third_axis()
     background = Background(config.background.size)
-    return RadianceField(gaussians, background, backend, config.background.known).to(device)
+    field = RadianceField(gaussians, background, backend, config.background.known, config.surfels)
+    return field.to(device)
 
 
 def on_points(
@@ -361,8 +367,9 @@ def train_radiance(
         derived = resume["data"]
         gaussians = Gaussians.from_state(resume["gaussians"])
         background = Background.from_faces(resume["background"])
-        field = RadianceField(gaussians, background, backend, config.background.known)
-        field = field.to(device)
+        field = RadianceField(
+            gaussians, background, backend, config.background.known, config.surfels
+        ).to(device)
     schedule = Schedule.of(config)
     extent = data.volume.radius
     optimizer = make_optimizer(field.gaussians, field.background, config.lr, extent)

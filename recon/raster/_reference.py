@@ -64,3 +64,47 @@ def rasterize_reference(
     depth = out[..., D] / alpha.clamp(min=1e-10)
     visible = torch.zeros(len(means), dtype=torch.bool)
     return Render(out[..., :D], depth, alpha, out[..., D + 1 :], proj.means2d, visible)
+
+
+def rasterize_surfels_reference(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    features: torch.Tensor,
+    camera: Camera,
+    near: float,
+) -> Render:
+    """Surfels (recon/raster/surfels.py) pixel by pixel, every disc tried at every pixel (no
+    boxes), front to back by their centres' depths."""
+    from evcap.recon.raster.surfels import ray_splat, surfel_matrices, surfel_normals
+
+    M = surfel_matrices(means, quats, scales, camera)
+    centre = M[:, :2, 2] / M[:, 2:, 2]
+    normals = surfel_normals(quats, means, camera)
+    order = [int(i) for i in torch.argsort(M[:, 2, 2].detach()) if M[i, 2, 2] > near]
+    D = features.shape[1]
+    rows, alphas = [], []
+    for y in range(camera.height):
+        for x in range(camera.width):
+            T = torch.ones((), dtype=features.dtype)
+            acc = torch.zeros(D + 4, dtype=features.dtype)
+            for i in order:
+                px, py = torch.tensor([x]), torch.tensor([y])
+                alpha, z = ray_splat(
+                    M[i : i + 1], centre[i : i + 1], opacities[i : i + 1], px, py, near
+                )
+                alpha, z = alpha[0], z[0]
+                if alpha < ALPHA_MIN:
+                    continue
+                if T * (1 - alpha) <= T_MIN:
+                    break
+                acc = acc + T * alpha * torch.cat([features[i], z[None], normals[i]])
+                T = T * (1 - alpha)
+            rows.append(acc)
+            alphas.append(1 - T)
+    out = torch.stack(rows).reshape(camera.height, camera.width, -1)
+    alpha = torch.stack(alphas).reshape(camera.height, camera.width)
+    depth = out[..., D] / alpha.clamp(min=1e-10)
+    visible = torch.zeros(len(means), dtype=torch.bool)
+    return Render(out[..., :D], depth, alpha, out[..., D + 1 :], centre, visible)

@@ -177,6 +177,21 @@ def rasterize_torch(
         o, a, w = _composite(_alphas(pp, pix % W, pix // W), pix, pp[:, 6:], H * W)
         out, acc = (o, a) if out is None else (out + o, acc + a)
         peak.scatter_reduce_(0, gid, w.detach(), "amax")
+    return composited_render(out, acc, camera, D, means2d, visible, peak)
+
+
+def composited_render(
+    out: torch.Tensor,
+    acc: torch.Tensor,
+    camera: Camera,
+    D: int,
+    means2d: torch.Tensor,
+    visible: torch.Tensor,
+    peak: torch.Tensor,
+) -> Render:
+    """The maps from each pixel's sum of w (features [D], z, normal [3]) ``out`` and its alpha
+    ``acc``."""
+    H, W = camera.height, camera.width
     depth = out[:, D] / acc.clamp(min=1e-10)
     return Render(
         out[:, :D].reshape(H, W, D),

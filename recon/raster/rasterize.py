@@ -158,18 +158,29 @@ def rasterize(
     background: torch.Tensor | None = None,
     backend: Backend = "cpu",
     near: float = 0.01,
+    surfels: bool = False,
 ) -> Render:
     """Render N Gaussians (means [N, 3], quats [N, 4], scales [N, 3] (not log), opacities [N]
     in (0, 1), features [N, D] (colors, or any per-Gaussian values)) into ``camera``.
-    ``background`` [H, W, D] or [D] is added where the Gaussians leave light through."""
+    ``background`` [H, W, D] or [D] is added where the Gaussians leave light through.
+    ``surfels``: each Gaussian a flat disc met by each pixel's ray (recon/raster/surfels.py)."""
     _check_inputs(means, quats, scales, opacities, features)
-    match backend:
-        case "cpu":
+    match backend, surfels:
+        case "cpu", False:
             from evcap.recon.raster._cpu import rasterize_cpu as impl
-        case "torch":
+        case "cpu", True:
+            from evcap.recon.raster._cpu_surfels import rasterize_surfels_cpu as impl
+        case "torch", False:
             from evcap.recon.raster._torch import rasterize_torch as impl
-        case "gsplat":
+        case "torch", True:
+            from evcap.recon.raster.surfels import rasterize_surfels_torch as impl
+        case "gsplat", False:
             from evcap.recon.raster._gsplat import rasterize_gsplat as impl
+        case "gsplat", True:
+            raise InputError(
+                "surfels render on the cpu or torch backend: gsplat's 2DGS rasterizer has not "
+                "been run with evcap yet (--backend torch on a GPU)"
+            )
         case _:
             assert_never(backend)
     out = impl(means, quats, scales, opacities, features, camera, near)

@@ -87,6 +87,15 @@ class Gaussians(torch.nn.Module):
             torch.zeros(count, (sh_degree + 1) ** 2 - 1, 3),
         )
 
+    @torch.no_grad()
+    def flatten_third_axis(self, ratio: float = 0.01) -> None:
+        """Surfels (config.surfels): the third scale, which the discs do not use, a ``ratio``
+        of the smaller of the other two, so that it stays the smallest (the normal's axis
+        wherever the smallest axis is taken for it) and densification splits them within
+        their planes."""
+        s = self.log_scales
+        s[:, 2] = s[:, :2].min(1).values + math.log(ratio)
+
     @classmethod
     def from_state(cls, state: dict[str, torch.Tensor]) -> Gaussians:
         """Gaussians from a state_dict (a checkpoint's)."""

@@ -79,6 +79,8 @@ NEW |= {f"loss.{t}.start": 0.0 for t in ("background_tv", "alpha", "opacity", "f
 NEW |= {"init.on_events": 0.0} | {f"init.stereo.{k}": v for k, v in names(StereoConfig())}
 # none pruned by its largest blending weight, nor held in a given box
 NEW |= {"densify.min_weight": 0.0, "densify.bounds": None}
+# 3D Gaussians, not surfels
+NEW |= {"surfels": False}
 STAGE_TWO = {
     "distill_weight": "loss.distill",
     "anchor_weight": "loss.anchor",

@@ -632,3 +632,29 @@ def test_a_preset_runs_both_stages_at_a_tiny_size(color_session, tmp_path, name)
 
 def test_every_preset_has_a_tiny_run():
     assert set(PRESET_NAMES) >= RUN_ELSEWHERE
+
+
+def test_surfels_run_both_stages_and_read_back_as_surfels(color_session, tmp_path):
+    """stage1.surfels: stage I's discs start flat (the third scale a hundredth of the others),
+    both stages render them as discs, and each checkpoint reads back rendering the same."""
+    from evcap.recon.evaluate.views import render_views
+    from evcap.recon.export import load_checkpoint, load_material_checkpoint
+    from evcap.recon.scene.optics import SensorOptics
+
+    config = preset("tiny", {"stage1.surfels": True}).stage1
+    with Session.open(color_session) as s:
+        data = load_training_data(s, config, "cpu")
+        optics = SensorOptics.from_session(s)
+        pose = GroundTruth.read(s).held_out_views().T_world_cam[:1]
+    start = new_field(data, config, 0, "cpu", "cpu")
+    s = start.gaussians.log_scales.detach()
+    assert start.surfels and torch.allclose(s[:, 2], s[:, :2].min(1).values + np.log(0.01))
+    settings = {"stage1.surfels": True, "stage1.iterations": 20, "stage2.iterations": 4}
+    reconstruct(color_session, tmp_path, ReconstructOptions(preset="tiny", settings=settings))
+    folder = ReconstructionFolder(tmp_path)
+    field, config = load_checkpoint(folder.checkpoint("radiance"))
+    material = load_material_checkpoint(folder.checkpoint("material"))
+    assert config.surfels and field.surfels and material.surfels
+    seen = render_views(field, pose, optics)["depth"]
+    field.surfels = False  # the same Gaussians as 3D Gaussians render otherwise
+    assert not np.allclose(render_views(field, pose, optics)["depth"], seen)
