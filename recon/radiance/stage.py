@@ -208,7 +208,7 @@ class RadianceField(torch.nn.Module):
             bg = self.background(grid.directions(viewmat))
         else:
             bg = self.backdrop.expand(grid.height, grid.width, 3)
-        if spread:
+        if spread:  # the centres' depths (a surfel's own at each pixel: rasterize's)
             z = g.means @ viewmat[2, :3] + viewmat[2, 3]
             colors = torch.cat([colors, (z * z)[:, None]], 1)
             bg = torch.cat([bg, bg.new_zeros(*bg.shape[:-1], 1)], -1)
@@ -222,6 +222,7 @@ class RadianceField(torch.nn.Module):
             background=bg,
             backend=self.backend,
             surfels=self.surfels,
+            depth_squared=spread,
         )
 
 

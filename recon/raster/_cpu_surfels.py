@@ -102,9 +102,11 @@ def _tile_buffers(layout, t, channels):
 
 
 @numba.njit(cache=True, parallel=True, fastmath=FASTMATH)
-def _composite_fwd(layout, splats, values, depth_channel, near, out, final_t, last, peak):
-    """As _cpu._composite_fwd, each pair's alpha and depth from its ray and disc; the
-    ``depth_channel`` of each pair's values is its own depth."""
+def _composite_fwd(layout, splats, values, channels_z, near, out, final_t, last, peak):
+    """As _cpu._composite_fwd, each pair's alpha and depth from its ray and disc; of each
+    pair's values, the channel channels_z[0] is its own depth and channels_z[1] (unless
+    negative) its square."""
+    depth_channel, square_channel = channels_z
     tile_start, width, workers = layout[0], layout[3], layout[-1]
     channels = values.shape[1]
     for worker in numba.prange(workers):
@@ -149,6 +151,8 @@ def _composite_fwd(layout, splats, values, depth_channel, near, out, final_t, la
                         for c in range(channels):
                             acc[i, c] += w * vals[k, c]
                         acc[i, depth_channel] += w * (z - vals[k, depth_channel])
+                        if square_channel >= 0:
+                            acc[i, square_channel] += w * (z * z - vals[k, square_channel])
                         T[i] = next_t
                         n[i] = j + 1
                     peak[s + k] = max(peak[s + k], top)
@@ -162,12 +166,11 @@ def _composite_fwd(layout, splats, values, depth_channel, near, out, final_t, la
 
 
 @numba.njit(cache=True, parallel=True, fastmath=FASTMATH)
-def _composite_bwd(
-    layout, splats, values, depth_channel, near, final_t, last, v_out, v_alpha, grads
-):
+def _composite_bwd(layout, splats, values, channels_z, near, final_t, last, v_out, v_alpha, grads):
     """Each intersection's gradients into its row of ``grads`` [M, SURFEL + channels], as
-    _cpu._composite_bwd; a pair's depth's gradient goes to M (the depth channel's own
-    column stays 0)."""
+    _cpu._composite_bwd; a pair's depth's gradient (and its square's) goes to M (their
+    channels' own columns stay 0)."""
+    depth_channel, square_channel = channels_z
     tile_start, width, workers = layout[0], layout[3], layout[-1]
     channels = values.shape[1]
     for worker in numba.prange(workers):
@@ -217,6 +220,10 @@ def _composite_bwd(
                             seen += v_row[i, ch] * vals[k, ch]
                         seen += v_row[i, depth_channel] * (z - vals[k, depth_channel])
                         v_z = w * v_row[i, depth_channel]
+                        if square_channel >= 0:
+                            sq = z * z - vals[k, square_channel]
+                            seen += v_row[i, square_channel] * sq
+                            v_z += 2 * z * w * v_row[i, square_channel]
                         v_alpha_k = (v_end[i] - behind[i]) * keep + seen * T[i]
                         behind[i] += seen * w
                         v_power = 0.0
@@ -268,17 +275,20 @@ def _composite_bwd(
                     for ch in range(channels):
                         row[SURFEL + ch] += v_vals[ch]
                     row[SURFEL + depth_channel] = 0.0
+                    if square_channel >= 0:
+                        row[SURFEL + square_channel] = 0.0
 
 
 class _Composite(torch.autograd.Function):
     """(M [N, 9], centres [N, 2], opacities [N], values [N, C], means2d) -> (the sum of w
-    values [H * W, C] with each pair's own depth in channel ``depth_channel``, alpha [H * W],
+    values [H * W, C] with each pair's own depth (and its square) in the channels
+    ``channels_z``, alpha [H * W],
     the largest blending weight [N]). ``means2d`` takes no part in the forward pass: its
     gradient is the screen-space one (surfels.screen_shifted's), for densification."""
 
     @staticmethod
     def forward(ctx, M, centres, opacities, values, means2d, state):
-        tiles, depth_channel, near = state
+        tiles, channels_z, near = state
         splats = np.concatenate([_cpu._np(M), _cpu._np(centres), _cpu._np(opacities)[:, None]], 1)
         wide = _to_lanes(_cpu._np(values))
         pixels = tiles.width * tiles.height
@@ -286,10 +296,10 @@ class _Composite(torch.autograd.Function):
         last = np.empty(pixels, np.int64)
         at_intersections, peak = np.empty(len(tiles.owner)), np.empty(len(splats))
         _composite_fwd(
-            tiles.layout(), splats, wide, depth_channel, near, out, final_t, last, at_intersections
+            tiles.layout(), splats, wide, channels_z, near, out, final_t, last, at_intersections
         )
         _max_rows(tiles.gaussian_start, tiles.slots, at_intersections, peak)
-        ctx.state = (tiles, depth_channel, near, splats, wide, out, final_t, last)
+        ctx.state = (tiles, channels_z, near, splats, wide, out, final_t, last)
         ctx.like = (M, centres, opacities, values, means2d)
         C, dtype = values.shape[1], values.dtype
         summed = torch.from_numpy(np.ascontiguousarray(out[:, :C])).to(values.device, dtype)
@@ -300,7 +310,7 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, v_summed, v_alpha, _v_peak):
-        tiles, depth_channel, near, splats, wide, out, final_t, last = ctx.state
+        tiles, channels_z, near, splats, wide, out, final_t, last = ctx.state
         pixels = len(final_t)
         v_out = np.zeros((pixels, wide.shape[1]))
         if v_summed is not None:
@@ -309,7 +319,7 @@ class _Composite(torch.autograd.Function):
         v_a = np.ascontiguousarray(v_a, np.float64)
         grads = _reused((len(tiles.owner), SURFEL + wide.shape[1]))
         _composite_bwd(
-            tiles.layout(), splats, wide, depth_channel, near, final_t, last, v_out, v_a, grads
+            tiles.layout(), splats, wide, channels_z, near, final_t, last, v_out, v_a, grads
         )
         per = np.empty((len(splats), grads.shape[1]))
         _sum_rows(tiles.gaussian_start, tiles.slots, grads, per)
@@ -343,7 +353,10 @@ def rasterize_surfels_cpu(
     features: torch.Tensor,
     camera: Camera,
     near: float,
+    depth_squared: bool = False,
 ) -> Render:
+    """``depth_squared``: the features' last channel is each pair's depth squared (what the
+    depth-spread loss composites), whatever the features hold there."""
     follow_torch_threads()
     W, H, D = camera.width, camera.height, features.shape[1]
     boxes = surfel_boxes(means, quats, scales, camera, near)
@@ -363,7 +376,12 @@ def rasterize_surfels_cpu(
     zeros = features.new_zeros(len(means), 1)
     values = torch.cat([features, zeros, normals], 1)
     summed, alpha, peak = _Composite.apply(
-        M.reshape(-1, 9), centres, opacities, values, means2d, (tiles, D, near)
+        M.reshape(-1, 9),
+        centres,
+        opacities,
+        values,
+        means2d,
+        (tiles, (D, D - 1 if depth_squared else -1), near),
     )
     depth = summed[:, D] / alpha.clamp(min=_cpu.DEPTH_ALPHA_MIN)
     return Render(

@@ -159,11 +159,14 @@ def rasterize(
     backend: Backend = "cpu",
     near: float = 0.01,
     surfels: bool = False,
+    depth_squared: bool = False,
 ) -> Render:
     """Render N Gaussians (means [N, 3], quats [N, 4], scales [N, 3] (not log), opacities [N]
     in (0, 1), features [N, D] (colors, or any per-Gaussian values)) into ``camera``.
     ``background`` [H, W, D] or [D] is added where the Gaussians leave light through.
-    ``surfels``: each Gaussian a flat disc met by each pixel's ray (recon/raster/surfels.py)."""
+    ``surfels``: each Gaussian a flat disc met by each pixel's ray (recon/raster/surfels.py);
+    with ``depth_squared`` the features' last channel is then each pair's depth squared (a
+    3D Gaussian's depth is its centre's: the caller gives its square)."""
     _check_inputs(means, quats, scales, opacities, features)
     match backend, surfels:
         case "cpu", False:
@@ -183,7 +186,8 @@ def rasterize(
             )
         case _:
             assert_never(backend)
-    out = impl(means, quats, scales, opacities, features, camera, near)
+    more = {"depth_squared": True} if surfels and depth_squared else {}
+    out = impl(means, quats, scales, opacities, features, camera, near, **more)
     if background is not None:
         out.color = out.color + (1 - out.alpha)[..., None] * background
     return out

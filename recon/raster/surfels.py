@@ -107,9 +107,11 @@ def rasterize_surfels_torch(
     features: torch.Tensor,
     camera: Camera,
     near: float,
+    depth_squared: bool = False,
 ) -> Render:
     """The torch backend's surfels: the pairs listed as for Gaussians (their boxes from
-    surfel_boxes), composited front to back by the discs' centres' depths."""
+    surfel_boxes), composited front to back by the discs' centres' depths.
+    ``depth_squared``: the features' last channel is each pair's depth squared."""
     W, H, D = camera.width, camera.height, features.shape[1]
     boxes = surfel_boxes(means, quats, scales, camera, near)
     means2d = boxes.means2d.detach().clone().requires_grad_(means.requires_grad)
@@ -132,7 +134,10 @@ def rasterize_surfels_torch(
         alpha, depth = ray_splat(
             pp[:, :9].reshape(-1, 3, 3), pp[:, 9:11], pp[:, 11], pix % W, pix // W, near
         )
-        values = torch.cat([pp[:, 12 : 12 + D], depth[:, None], pp[:, 12 + D :]], 1)
+        own = pp[:, 12 : 12 + D]
+        if depth_squared:
+            own = torch.cat([own[:, :-1], (depth * depth)[:, None]], 1)
+        values = torch.cat([own, depth[:, None], pp[:, 12 + D :]], 1)
         o, a, w = _torch._composite(alpha, pix, values, H * W)
         out, acc = (o, a) if out is None else (out + o, acc + a)
         peak.scatter_reduce_(0, gid, w.detach(), "amax")

@@ -32,10 +32,18 @@ def discs(n: int = 30, channels: int = 3, seed: int = 0, case: str = "cloud") ->
     return [t.requires_grad_(True) for t in (means, quats, log_scales, opac, features)]
 
 
-def render(params, cam, backend):
+def render(params, cam, backend, depth_squared=False):
     means, quats, log_scales, opac, features = params
     return rasterize(
-        means, quats, log_scales.exp(), opac, features, cam, backend=backend, surfels=True
+        means,
+        quats,
+        log_scales.exp(),
+        opac,
+        features,
+        cam,
+        backend=backend,
+        surfels=True,
+        depth_squared=depth_squared,
     )
 
 
@@ -45,8 +53,8 @@ def outputs(r) -> torch.Tensor:
     )
 
 
-def gradients(params, cam, backend, weights):
-    out = render(params, cam, backend)
+def gradients(params, cam, backend, weights, depth_squared=False):
+    out = render(params, cam, backend, depth_squared)
     (outputs(out) * weights).sum().backward()
     grads = [p.grad.clone() for p in params] + [out.means2d.grad.clone()]
     for p in params:
@@ -66,15 +74,16 @@ def test_torch_matches_the_per_pixel_reference(case):
     assert (outputs(out) - outputs(ref)).abs().mean() < 1e-4
 
 
-@pytest.mark.parametrize("case", ["cloud", "edge_on", "dense"])
+@pytest.mark.parametrize("case", ["cloud", "edge_on", "dense", "depth_squared"])
 def test_cpu_matches_torch_in_values_and_gradients(case):
     cam = camera(70, 23)
     weights = torch.rand(23, 70, 3 + 1 + 1 + 3, generator=torch.Generator().manual_seed(1))
     weights = weights.to(F64)
     a = discs(40, case=case)
     b = [p.detach().clone().requires_grad_(True) for p in a]
-    out_t, grads_t = gradients(a, cam, "torch", weights)
-    out_c, grads_c = gradients(b, cam, "cpu", weights)
+    squared = case == "depth_squared"
+    out_t, grads_t = gradients(a, cam, "torch", weights, squared)
+    out_c, grads_c = gradients(b, cam, "cpu", weights, squared)
     assert torch.allclose(out_c, out_t, rtol=1e-7, atol=1e-9)
     names = ["means", "quats", "scales", "opacities", "features", "means2d"]
     for name, gt, gc in zip(names, grads_t, grads_c, strict=True):
@@ -105,17 +114,10 @@ def test_a_tilted_disc_gives_its_planes_depth_along_every_ray():
     quat = torch.tensor([[math.cos(angle / 2), math.sin(angle / 2), 0.0, 0.0]], dtype=F64)
     means = torch.tensor([[0.0, 0.0, 2.0]], dtype=F64)
     scales = torch.tensor([[0.5, 0.5, 1.0]], dtype=F64)
+    r_args = (means, quat, scales, torch.tensor([0.99], dtype=F64), torch.ones(1, 1, dtype=F64))
+    r_args += (cam,)
     for backend in ("torch", "cpu"):
-        r = rasterize(
-            means,
-            quat,
-            scales,
-            torch.tensor([0.99], dtype=F64),
-            torch.ones(1, 1, dtype=F64),
-            cam,
-            backend=backend,
-            surfels=True,
-        )
+        r = rasterize(*r_args, backend=backend, surfels=True)
         normal = torch.tensor([0.0, -math.sin(angle), math.cos(angle)], dtype=F64)
         ys, xs = torch.meshgrid(
             torch.arange(41.0, dtype=F64), torch.arange(41.0, dtype=F64), indexing="ij"
@@ -126,6 +128,8 @@ def test_a_tilted_disc_gives_its_planes_depth_along_every_ray():
         assert opaque.sum() > 200
         assert torch.allclose(r.depth[opaque], truth[opaque], rtol=1e-9)
         assert r.alpha[20, 20] == pytest.approx(0.99)
+        squared = rasterize(*r_args, backend=backend, surfels=True, depth_squared=True)
+        assert torch.allclose(squared.color[opaque][:, 0], r.depth[opaque] ** 2 * r.alpha[opaque])
         # the normal turned to face the camera
         assert torch.allclose(r.normal[20, 20] / r.alpha[20, 20], -normal, atol=1e-9)
 
