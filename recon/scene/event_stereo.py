@@ -50,6 +50,11 @@ class StereoConfig:
     volume's radius ..."""
     witnesses: int = 2
     """... at least this many of them, none sharing an event with its own view."""
+    aperture: float = 0.0
+    """A pixel is kept only where its edge crosses the direction the camera's translation
+    moves it in: |cos| of the angle between the edge's normal and that direction at least
+    this (0: every edge). An edge along that direction moves along itself (the aperture
+    problem): its rays meet anywhere, often just before the cameras."""
 
     def __post_init__(self) -> None:
         if self.references < 2 or self.planes < 8 or self.max_events < 1:
@@ -58,6 +63,8 @@ class StereoConfig:
             raise InputError(
                 "init.stereo needs overlap > 0, contrast >= 1, agree > 0 and witnesses >= 1"
             )
+        if not 0 <= self.aperture < 1:
+            raise InputError("init.stereo.aperture is a cosine in [0, 1)")
 
 
 @dataclass
@@ -147,7 +154,12 @@ def _reference_points(
         optics.K,
         density,
     )
-    return _peaks(density, depths, T_ref, optics.K, config.contrast)
+    focus = _focus(density)
+    chosen = _chosen(focus, len(depths), config.contrast)
+    if config.aperture > 0:  # the stretch's translation, in the reference camera
+        shift = poses[-1, :3, 3] - poses[0, :3, 3]
+        chosen &= _across_the_motion(focus[2], shift, optics.K, config.aperture)
+    return _peaks(focus, depths, T_ref, optics.K, chosen)
 
 
 @numba.njit(cache=True, parallel=True)
@@ -176,21 +188,59 @@ def _cast(rays, bins, rotations, shifts, depths, K, density):
                 density[i, row, col] += 1.0
 
 
-def _peaks(
-    density: np.ndarray, depths: np.ndarray, T_ref: np.ndarray, K: np.ndarray, contrast: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """World points where a pixel's rays peak in depth and stand out from its neighbourhood,
-    and that contrast; none at the ends of the depth range (at infinity or too near)."""
+def _focus(density: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(the density smoothed in each plane, each pixel's densest plane, its density there,
+    that density's neighbourhood mean)."""
     import cv2
 
     smooth = np.stack([cv2.GaussianBlur(d, (0, 0), 0.8) for d in density])
     best = smooth.argmax(0)
     peak = np.take_along_axis(smooth, best[None], 0)[0]
     around = cv2.GaussianBlur(peak, (0, 0), 5.0)
+    return smooth, best, peak, around
+
+
+def _chosen(focus: tuple[np.ndarray, ...], planes: int, contrast: float) -> np.ndarray:
+    """The pixels whose rays peak in depth and stand out from their neighbourhood; none at the
+    ends of the depth range (at infinity or too near)."""
+    _, best, peak, around = focus
     # a floor: a pixel crossed by a few stray rays is not structure
     floor = np.percentile(peak[peak > 0], 50) if (peak > 0).any() else np.inf
     chosen = (peak > contrast * around) & (peak > floor)
-    chosen &= (best > 0) & (best < len(depths) - 1)
+    return chosen & (best > 0) & (best < planes - 1)
+
+
+def _across_the_motion(
+    peak: np.ndarray, shift: np.ndarray, K: np.ndarray, aperture: float
+) -> np.ndarray:
+    """The pixels whose edge (a ridge of ``peak``; its normal the structure tensor's first
+    eigenvector) crosses the direction in which the camera's translation ``shift`` (the
+    reference camera's frame) moves a point there: |cos| of their angle >= ``aperture``."""
+    import cv2
+
+    gx = cv2.Sobel(peak, cv2.CV_32F, 1, 0)
+    gy = cv2.Sobel(peak, cv2.CV_32F, 0, 1)
+    jxx, jxy, jyy = (cv2.GaussianBlur(g, (0, 0), 1.5) for g in (gx * gx, gx * gy, gy * gy))
+    angle = 0.5 * np.arctan2(2 * jxy, jxx - jyy)
+    rows, cols = np.indices(peak.shape)
+    x, y = (cols - K[0, 2]) / K[0, 0], (rows - K[1, 2]) / K[1, 1]
+    # a point's image moves with the translation along (t_x - x t_z, t_y - y t_z) / z
+    fx = K[0, 0] * (shift[0] - x * shift[2])
+    fy = K[1, 1] * (shift[1] - y * shift[2])
+    norm = np.maximum(np.hypot(fx, fy), 1e-12)
+    return np.abs(np.cos(angle) * fx + np.sin(angle) * fy) / norm >= aperture
+
+
+def _peaks(
+    focus: tuple[np.ndarray, ...],
+    depths: np.ndarray,
+    T_ref: np.ndarray,
+    K: np.ndarray,
+    chosen: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """World points where the ``chosen`` pixels' rays peak in depth, and how much their
+    density stands out from their neighbourhood's."""
+    smooth, best, peak, around = focus
     rows, cols = np.nonzero(chosen)
     i = best[rows, cols]
     # the peak between planes: a parabola through the density at the plane and its two
