@@ -504,11 +504,12 @@ def _exp_walk(local, k, mx, ha, bdy, hcdy2, lo, hi):
 
 
 @numba.njit(cache=True, inline="always")
-def _tile_buffers(layout, t, channels):
+def _tile_buffers(layout, t, channels, columns):
+    """A tile's copies of its splats (``columns`` each) and values, its rows' lists."""
     tile_start, tile_h = layout[0], layout[6]
     n = tile_start[t + 1] - tile_start[t]
     return (
-        np.empty((n, BOX_X1 + 1)),
+        np.empty((n, columns)),
         np.empty((n, channels)),
         np.empty((tile_h, n), np.int64),
         np.empty(tile_h, np.int64),
@@ -527,7 +528,7 @@ def _composite_fwd(layout, terms, values, out, final_t, last, peak):
         for t in _share(layout, worker):
             s = tile_start[t]
             peak[s : tile_start[t + 1]] = 0.0
-            local, vals, rows, row_len = _tile_buffers(layout, t, channels)
+            local, vals, rows, row_len = _tile_buffers(layout, t, channels, BOX_X1 + 1)
             _gather(layout, t, terms, values, local, vals, rows, row_len)
             x0, y0, cols, tile_rows = _tile_area(layout, t)
             acc, T = np.empty((cols, channels)), np.empty(cols)
@@ -595,7 +596,7 @@ def _composite_bwd(layout, terms, values, final_t, last, v_out, v_alpha, grads):
         for t in _share(layout, worker):
             s = tile_start[t]
             grads[s : tile_start[t + 1]] = 0.0
-            local, vals, rows, row_len = _tile_buffers(layout, t, channels)
+            local, vals, rows, row_len = _tile_buffers(layout, t, channels, BOX_X1 + 1)
             _gather(layout, t, terms, values, local, vals, rows, row_len)
             x0, y0, cols, tile_rows = _tile_area(layout, t)
             T, n, v_end = np.empty(cols), np.empty(cols, np.int64), np.empty(cols)

@@ -30,6 +30,7 @@ from evcap.recon.raster._cpu import (
     _share,
     _sum_rows,
     _tile_area,
+    _tile_buffers,
     _to_lanes,
 )
 from evcap.recon.raster.rasterize import Camera, Render
@@ -89,18 +90,6 @@ def _intersect(local, k, px, py):
     return 0.5 * rho2d, local[k, 8], False, 0.0, 0.0, c2
 
 
-@numba.njit(cache=True, inline="always")
-def _tile_buffers(layout, t, channels):
-    tile_start, tile_h = layout[0], layout[6]
-    n = tile_start[t + 1] - tile_start[t]
-    return (
-        np.empty((n, BOX_X1 + 1)),
-        np.empty((n, channels)),
-        np.empty((tile_h, n), np.int64),
-        np.empty(tile_h, np.int64),
-    )
-
-
 @numba.njit(cache=True, parallel=True, fastmath=FASTMATH)
 def _composite_fwd(layout, splats, values, channels_z, near, out, final_t, last, peak):
     """As _cpu._composite_fwd, each pair's alpha and depth from its ray and disc; of each
@@ -113,7 +102,7 @@ def _composite_fwd(layout, splats, values, channels_z, near, out, final_t, last,
         for t in _share(layout, worker):
             s = tile_start[t]
             peak[s : tile_start[t + 1]] = 0.0
-            local, vals, rows, row_len = _tile_buffers(layout, t, channels)
+            local, vals, rows, row_len = _tile_buffers(layout, t, channels, BOX_X1 + 1)
             _gather(layout, t, splats, values, local, vals, rows, row_len)
             x0, y0, cols, tile_rows = _tile_area(layout, t)
             acc, T = np.empty((cols, channels)), np.empty(cols)
@@ -177,7 +166,7 @@ def _composite_bwd(layout, splats, values, channels_z, near, final_t, last, v_ou
         for t in _share(layout, worker):
             s = tile_start[t]
             grads[s : tile_start[t + 1]] = 0.0
-            local, vals, rows, row_len = _tile_buffers(layout, t, channels)
+            local, vals, rows, row_len = _tile_buffers(layout, t, channels, BOX_X1 + 1)
             _gather(layout, t, splats, values, local, vals, rows, row_len)
             x0, y0, cols, tile_rows = _tile_area(layout, t)
             T, n, v_end = np.empty(cols), np.empty(cols, np.int64), np.empty(cols)
