@@ -14,6 +14,7 @@ from evcap.recon.radiance.pose_refinement import PoseRefinementConfig
 from evcap.recon.radiance.terms import LossConfig
 from evcap.recon.scene.event_stereo import StereoConfig
 from evcap.recon.scene.gaussians import BackgroundConfig, LearningRates
+from evcap.recon.scene.support_plane import SupportConfig
 
 
 def _check_scale(name: str, value: float) -> None:
@@ -36,15 +37,22 @@ class InitConfig:
     finds fewer: none is then drawn at random in their place)."""
     stereo: StereoConfig = StereoConfig()
     """The events' multi-view stereo."""
+    on_support: float = 0.0
+    """The share started as flat discs on the plane the stereo's points stand on (a floor, a
+    table: recon/scene/support_plane.py), taken from the shares above, when one is found; the
+    mean alpha (loss.alpha) is then not asked where the rays meet it."""
+    support: SupportConfig = SupportConfig()
+    """Finding that plane."""
     size_px: float = 1.0
     """Their largest starting size (sigma), in render pixels."""
 
     def __post_init__(self) -> None:
         if self.gaussians < 1 or self.size_px <= 0:
             raise InputError("init.gaussians must be at least 1 and init.size_px above 0")
-        if not 0 <= self.on_points <= 1 or not 0 <= self.on_events <= 1:
+        if not all(0 <= s <= 1 for s in (self.on_points, self.on_events, self.on_support)):
             raise InputError(
-                "init.on_points and init.on_events are shares of init.gaussians, in [0, 1]"
+                "init.on_points, init.on_events and init.on_support are shares of "
+                "init.gaussians, in [0, 1]"
             )
         if self.on_points + self.on_events > 1:
             raise InputError(

@@ -34,6 +34,7 @@ from evcap.recon.resume import Steps, random_states, restore_random_states
 from evcap.recon.scene.event_stereo import event_stereo
 from evcap.recon.scene.gaussians import Background, Gaussians, make_optimizer, means_lr
 from evcap.recon.scene.optics import CHANNEL_WEIGHTS, RenderGrid, SensorOptics, render_grid
+from evcap.recon.scene.support_plane import Plane, on_plane, support_plane
 from evcap.recon.scene.volume import (
     Ball,
     SceneVolume,
@@ -60,6 +61,7 @@ class TrainingData:
     volume: SceneVolume
     structure: np.ndarray | None = None  # [N, 3] the events' stereo points (init.on_events)
     bound: Ball | None = None  # the foreground's (densify.confine)
+    support: Plane | None = None  # what the structure stands on (init.on_support)
     _viewmats: tuple[Poses, torch.Tensor] | None = dataclasses.field(default=None, repr=False)
 
     def viewmats(self) -> torch.Tensor:
@@ -81,6 +83,7 @@ class TrainingData:
             "coarse_grid": coarse,
             "volume": self.volume.state(),
             "bound": self.bound.state() if self.bound is not None else None,
+            "support": self.support.state() if self.support is not None else None,
             "windows": self.windows.digest(),
         }
 
@@ -100,6 +103,8 @@ def load_training_data(
         data.volume = SceneVolume.from_state(derived["volume"])
         bound = derived.get("bound")  # a state saved before the bound was: the volume's
         data.bound = Ball.from_state(bound) if bound else foreground_ball(data.volume, None)
+        support = derived.get("support")
+        data.support = Plane.from_state(support) if support else None
     return data
 
 
@@ -124,7 +129,7 @@ def _training_data(
     windows = EventWindows.from_session(session, optics, start, end, config.windows, device)
     weights = CHANNEL_WEIGHTS[torch.from_numpy(optics.channels().astype(np.int64))]
     mask = torch.from_numpy(~optics.hot_pixels.ravel())
-    volume, grid, coarse, structure, bound = None, None, None, None, None
+    volume, grid, coarse, structure, bound, support = None, None, None, None, None, None
     if geometry:
         poses = track.at(windows.frame_times)
         volume = scene_volume(poses, optics.K, optics.width, optics.height)
@@ -136,6 +141,9 @@ def _training_data(
             found = event_stereo(session.events, stretch, track, optics, volume, config.init.stereo)
             structure = found.points
         bound = foreground_ball(volume, structure)
+        if config.init.on_support > 0 and structure is not None and bound is not None:
+            cameras = poses[:, :3, 3]
+            support = support_plane(structure, cameras, bound.radius, config.init.support)
     return TrainingData(
         optics,
         track,
@@ -147,6 +155,7 @@ def _training_data(
         volume,
         structure,
         bound,
+        support,
     )
 
 
@@ -290,19 +299,24 @@ def _new_field(
     o = data.optics
     init = config.init
     points = np.zeros((0, 3))
+    discs = np.zeros((0, 3))
+    if init.on_support > 0 and data.support is not None and data.bound is not None:
+        n = round(init.on_support * init.gaussians)
+        discs = on_plane(data.support, data.bound, poses, o.K, o.width, o.height, n, rng)
+    left = init.gaussians - len(discs)  # the other shares' Gaussians
     if init.on_points > 0 and data.track.points_xyz is not None:
-        n = min(round(init.on_points * init.gaussians), init.gaussians)
+        n = min(round(init.on_points * init.gaussians), left)
         points = on_points(data.track.points_xyz, data.volume, n, rng)
     missing = 0  # stereo points asked for and not found: none drawn at random in their place
     if init.on_events > 0 and data.structure is not None:
-        n = round(init.on_events * init.gaussians)
+        n = min(round(init.on_events * init.gaussians), left - len(points))
         found = data.structure[rng.permutation(len(data.structure))[:n]]
         points, missing = np.concatenate([points, found]), n - len(found)
-    rest = init.gaussians - len(points) - missing
+    rest = left - len(points) - missing
     if rest > 0:
         randoms = sample_points(data.volume, poses, o.K, o.width, o.height, rest, rng)
         points = np.concatenate([points, randoms])
-    if len(points) == 0:
+    if len(points) + len(discs) == 0:
         raise InputError(
             "stage I has no Gaussians to start from: the events' stereo found no structure "
             "(too few events, or none that moved across the sensor); start some at random "
@@ -315,12 +329,22 @@ def _new_field(
     if not data.volume.converging:
         distance = np.sqrt(data.volume.near * data.volume.far)
     footprint = distance / float(data.grid.K[0, 0])
-    gaussians = Gaussians.random(points, config.sh_degree, g, init.size_px * footprint)
+    parts = []
+    if len(points):
+        parts.append(Gaussians.random(points, config.sh_degree, g, init.size_px * footprint))
+    if len(discs):
+        normals = np.tile(np.asarray(data.support.normal), (len(discs), 1))
+        spacing = float(np.sqrt(np.pi * data.bound.radius**2 / len(discs)))
+        parts.append(Gaussians.on_surface(discs, normals, spacing, config.sh_degree, DISC_OPACITY))
+    gaussians = Gaussians.joined(parts)
     if config.surfels:
         gaussians.flatten_third_axis()
     background = Background(config.background.size)
     field = RadianceField(gaussians, background, backend, config.background.known, config.surfels)
     return field.to(device)
+
+
+DISC_OPACITY = 0.5  # the support's discs: a surface the events do not contradict, not yet seen
 
 
 def on_points(

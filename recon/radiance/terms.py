@@ -23,6 +23,7 @@ from evcap.recon.radiance.losses import (
 )
 from evcap.recon.raster.rasterize import Render
 from evcap.recon.scene.optics import RenderGrid
+from evcap.recon.scene.support_plane import rays_meet
 from evcap.recon.step_timer import UNTIMED, StepTimer
 
 if TYPE_CHECKING:
@@ -192,7 +193,17 @@ def stage_one_terms(config: RadianceConfig, refines_poses: bool) -> list[Term]:
         return sum(depth_curvature_loss(r.depth, r.alpha) for r in x.renders) / len(x.renders)
 
     def alpha(x: StepInputs) -> torch.Tensor:
-        return torch.stack([r.alpha.mean() for r in x.renders]).mean()
+        support, ball = x.data.support, x.data.bound
+        if config.init.on_support == 0 or support is None or ball is None:
+            return torch.stack([r.alpha.mean() for r in x.renders]).mean()
+        # the backdrop is not seen through the support: its pixels are not asked to be clear
+        total = x.renders[0].alpha.new_zeros(())
+        for f, r in zip(x.frames, x.renders, strict=True):
+            viewmat = x.data.viewmats()[int(f)]
+            origin = -viewmat[:3, :3].T @ viewmat[:3, 3]
+            meets = rays_meet(support, ball, x.grid.directions(viewmat), origin)
+            total = total + (r.alpha * ~meets).mean()
+        return total / len(x.renders)
 
     def binary(x: StepInputs) -> torch.Tensor:
         o = x.field.gaussians.opacities

@@ -87,6 +87,11 @@ class Gaussians(torch.nn.Module):
             torch.zeros(count, (sh_degree + 1) ** 2 - 1, 3),
         )
 
+    @classmethod
+    def joined(cls, parts: list[Gaussians]) -> Gaussians:
+        """One set of the Gaussians of ``parts`` (their SH of one degree)."""
+        return cls(*(torch.cat([getattr(p, k).detach() for p in parts]) for k in PARAMS))
+
     @torch.no_grad()
     def flatten_third_axis(self, ratio: float = 0.01) -> None:
         """Surfels (config.surfels): the third scale, which the discs do not use, a ``ratio``

@@ -11,6 +11,7 @@ import pytest
 from evcap.recon.config import PRESET_NAMES
 from evcap.recon.presets import preset
 from evcap.recon.scene.event_stereo import StereoConfig
+from evcap.recon.scene.support_plane import SupportConfig
 from evcap.recon.settings import names
 from evcap.sim.scene import SensorSpec
 
@@ -77,6 +78,8 @@ NEW = {f"loss.{t}.start": 0.0 for t in ("anchor", "spread", "smooth", "curvature
 NEW |= {f"loss.{t}.start": 0.0 for t in ("background_tv", "alpha", "opacity", "flatten")}
 # none started on the events' stereo, whose own settings then do nothing
 NEW |= {"init.on_events": 0.0} | {f"init.stereo.{k}": v for k, v in names(StereoConfig())}
+# none started on a support plane, whose own settings then do nothing
+NEW |= {"init.on_support": 0.0} | {f"init.support.{k}": v for k, v in names(SupportConfig())}
 # none pruned by its largest blending weight, nor held in a given box
 NEW |= {"densify.min_weight": 0.0, "densify.bounds": None}
 # 3D Gaussians, not surfels
@@ -95,9 +98,7 @@ STAGE_TWO |= {f"lr_{k}": f"lr.{k}" for k in ("indirect", "light")}
 
 
 # settings a preset changed since, by measurement (each preset's TUNED_ON says on what)
-CHANGED = {
-    "fast": {"init.on_events": 1.0, "loss.alpha.weight": 0.1, "init.stereo.aperture": 0.1}
-}
+CHANGED = {"fast": {"init.on_events": 1.0, "loss.alpha.weight": 0.1, "init.stereo.aperture": 0.1}}
 
 
 def as_before(config, renamed: dict[str, str], changed: dict | None = None) -> dict:

@@ -20,7 +20,9 @@ from evcap.recon.export import read_ply_header
 from evcap.recon.options import ReconstructOptions
 from evcap.recon.presets import preset
 from evcap.recon.radiance.stage import RadianceField, load_training_data, new_field, train_radiance
+from evcap.recon.raster.rasterize import gaussian_normals
 from evcap.recon.reconstruct import reconstruct
+from evcap.recon.scene.support_plane import Plane
 from evcap.records import Calibration, GroundTruth, ReconstructionFolder
 from evcap.session import Session, SessionWriter
 from evcap.sim.scene import load_scene
@@ -614,6 +616,31 @@ def test_gaussians_start_on_the_events_structure_when_asked(color_session):
     data.structure = np.zeros((0, 3))
     with pytest.raises(InputError, match="stereo found no structure"):
         new_field(data, config, 0, "cpu", "torch")
+
+
+def test_a_share_starts_as_flat_discs_on_the_support_plane(color_session):
+    """init.on_support: that share of the Gaussians flat on the plane the structure stands
+    on, facing along its normal, inside the foreground's ball; the plane kept with what a
+    training saves."""
+    config = preset(
+        "tiny",
+        {"stage1.init.on_events": 1.0, "stage1.init.on_support": 0.25, "stage1.init.gaussians": 40},
+    ).stage1
+    with Session.open(color_session) as s:
+        data = load_training_data(s, config, "cpu")
+    # the tiny scene stands on nothing: a plane through its ball's centre, given
+    data.support = Plane((0.0, 0.0, 1.0), float(data.bound.center[2]))
+    field = new_field(data, config, 0, "cpu", "torch")
+    g = field.gaussians
+    on = np.abs(g.means.detach().numpy()[:, 2] - data.support.offset) < 1e-6
+    assert on.sum() == 10 and len(g.means) <= 40
+    normals = gaussian_normals(g.quats[on], g.log_scales[on].exp()).detach().numpy()
+    assert np.allclose(np.abs(normals[:, 2]), 1, atol=1e-5)
+    reach = np.linalg.norm(g.means.detach().numpy()[on] - data.bound.center, axis=1)
+    assert (reach <= data.bound.radius).all()
+    with Session.open(color_session) as s:
+        again = load_training_data(s, config, "cpu", data.derived())
+    assert again.support == data.support
 
 
 # every preset runs at a tiny size in the default run: tiny in most tests here, paper above,

@@ -1,0 +1,194 @@
+"""The plane the scene stands on (a floor, a table), from the events' stereo points.
+
+A support without texture makes events only where something marks it: the contact lines of
+what stands on it, the outlines of shadows, its far edges. Its inside is one colour, which a
+background at infinity paints as well as a surface can, so stage I leaves it to the background
+(multi_object: 71 % of the floor's pixels seen through). The marks lie on one plane, with the
+cameras on one side and nearly all the structure above it: that plane, where the stereo finds
+one, starts as flat discs, and the mean alpha is not asked of the pixels whose rays meet it
+inside the foreground's ball (the backdrop is not seen through a floor).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from evcap.errors import InputError
+from evcap.recon.scene.volume import Ball
+
+
+@dataclass(frozen=True)
+class SupportConfig:
+    """Finding the plane the scene stands on (support_plane)."""
+
+    tolerance: float = 0.02
+    """A point lies on the plane within this share of the foreground ball's radius."""
+    holds: float = 0.1
+    """The plane holds at least this share of the stereo points ..."""
+    below: float = 0.03
+    """... and at most this share lies below it (beyond the tolerance, away from the
+    cameras)."""
+    tries: int = 2000
+    """Planes tried through three points each (RANSAC)."""
+
+    def __post_init__(self) -> None:
+        if self.tolerance <= 0 or not 0 < self.holds <= 1 or not 0 <= self.below < 1:
+            raise InputError(
+                "init.support needs tolerance > 0, holds in (0, 1] and below in [0, 1)"
+            )
+        if self.tries < 1:
+            raise InputError("init.support.tries must be at least 1")
+
+
+@dataclass(frozen=True)
+class Plane:
+    """The points x with normal . x = offset; the normal towards the cameras."""
+
+    normal: tuple[float, float, float]
+    offset: float
+
+    def state(self) -> dict:
+        return {"normal": list(self.normal), "offset": self.offset}
+
+    @classmethod
+    def from_state(cls, state: dict) -> Plane:
+        return cls(tuple(float(c) for c in state["normal"]), float(state["offset"]))
+
+
+def support_plane(
+    points: np.ndarray, cameras: np.ndarray, radius: float, config: SupportConfig
+) -> Plane | None:
+    """The plane under ``points`` [N, 3] (see the module's text), the ``cameras`` [C, 3] all
+    above it; None when no plane holds enough of them with little below. ``radius``: the
+    foreground ball's, the tolerance's unit."""
+    if len(points) < 3 or len(cameras) == 0:
+        return None
+    rng = np.random.default_rng(0)  # the session's plane, whatever the run's seed
+    within = config.tolerance * radius
+    best, count = None, int(np.ceil(config.holds * len(points))) - 1
+    needed = count
+    for _ in range(config.tries):
+        plane = _through(points[rng.choice(len(points), 3, replace=False)], cameras)
+        if plane is None:
+            continue
+        held = _accept(plane, points, cameras, within, config.below)
+        if held > count and _wide(plane, points, within):
+            best, count = plane, held
+    if best is None:
+        return None
+    # refined by least squares over what it holds; kept only if still a support
+    normal, offset = best
+    on = np.abs(points @ normal - offset) < within
+    centre = points[on].mean(0)
+    refit = np.linalg.svd(points[on] - centre)[2][2]
+    refit = refit if refit @ normal > 0 else -refit
+    refined = (refit, float(refit @ centre))
+    if _accept(refined, points, cameras, within, config.below) > needed and _wide(
+        refined, points, within
+    ):
+        normal, offset = refit, float(refit @ centre)
+    return Plane(tuple(float(c) for c in normal), float(offset))
+
+
+def _through(three: np.ndarray, cameras: np.ndarray) -> tuple[np.ndarray, float] | None:
+    normal = np.cross(three[1] - three[0], three[2] - three[0])
+    norm = np.linalg.norm(normal)
+    if norm < 1e-12:
+        return None
+    normal = normal / norm
+    if np.median(cameras @ normal) < normal @ three[0]:
+        normal = -normal
+    return normal, float(normal @ three[0])
+
+
+def _accept(
+    plane: tuple[np.ndarray, float],
+    points: np.ndarray,
+    cameras: np.ndarray,
+    within: float,
+    below: float,
+) -> int:
+    """How many points the plane holds; 0 where a camera is not above it or too many points
+    are below."""
+    normal, offset = plane
+    if (cameras @ normal - offset).min() <= within:
+        return 0
+    height = points @ normal - offset
+    if (height < -within).mean() > below:
+        return 0
+    return int((np.abs(height) < within).sum())
+
+
+def _wide(plane: tuple[np.ndarray, float], points: np.ndarray, within: float) -> bool:
+    """Whether what the plane holds spreads over it (not along one line: the smaller in-plane
+    spread at least a quarter of the larger) and reaches wider than what stands on it (a
+    painted ring on an object is a plane too, inside the object's own outline)."""
+    normal, offset = plane
+    height = points @ normal - offset
+    on, above = np.abs(height) < within, height >= within
+    if on.sum() < 3 or above.sum() < 3:
+        return bool(on.sum() >= 3)
+    flat = points - height[:, None] * normal  # each point's foot on the plane
+    spread = np.linalg.eigvalsh(np.cov(flat[on].T))[1:]  # the plane's two directions
+    if spread[0] < 0.0625 * spread[1]:
+        return False
+    middle = flat[above].mean(0)
+    reach = np.percentile(np.linalg.norm(flat[on] - middle, axis=1), 90)
+    return bool(reach > np.percentile(np.linalg.norm(flat[above] - middle, axis=1), 90))
+
+
+def on_plane(
+    plane: Plane,
+    ball: Ball,
+    T_world_cam: np.ndarray,
+    K: np.ndarray,
+    width: int,
+    height: int,
+    n: int,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """n points [n, 3] evenly at random on the plane inside the ball, each in some camera's
+    view; none where the plane misses the ball."""
+    normal, centre = np.asarray(plane.normal), np.asarray(ball.center)
+    foot = centre - (centre @ normal - plane.offset) * normal
+    reach2 = ball.radius**2 - float(np.sum((foot - centre) ** 2))
+    if n <= 0 or reach2 <= 0:
+        return np.zeros((0, 3))
+    u = np.cross(normal, [1.0, 0, 0] if abs(normal[0]) < 0.9 else [0, 1.0, 0])
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    out: list[np.ndarray] = []
+    for _ in range(50):  # a plane out of every view gives none, not an endless loop
+        r = np.sqrt(reach2 * rng.uniform(0, 1, 4 * n))
+        angle = rng.uniform(0, 2 * np.pi, 4 * n)
+        pts = foot + (r * np.cos(angle))[:, None] * u + (r * np.sin(angle))[:, None] * v
+        out.append(pts[_seen(pts, T_world_cam, K, width, height)])
+        if sum(len(o) for o in out) >= n:
+            break
+    return np.concatenate(out)[:n]
+
+
+def _seen(points: np.ndarray, T_world_cam: np.ndarray, K: np.ndarray, w: int, h: int) -> np.ndarray:
+    seen = np.zeros(len(points), bool)
+    for T in T_world_cam[:: max(1, len(T_world_cam) // 16)]:
+        cam = (points - T[:3, 3]) @ T[:3, :3]
+        z = np.maximum(cam[:, 2], 1e-9)
+        x, y = K[0, 0] * cam[:, 0] / z + K[0, 2], K[1, 1] * cam[:, 1] / z + K[1, 2]
+        seen |= (cam[:, 2] > 0) & (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    return seen
+
+
+def rays_meet(
+    plane: Plane, ball: Ball, directions: torch.Tensor, origin: torch.Tensor
+) -> torch.Tensor:
+    """[h, w] bool: the rays from ``origin`` [3] along ``directions`` [h, w, 3] that meet the
+    plane inside the ball."""
+    normal = directions.new_tensor(plane.normal)
+    centre = directions.new_tensor(ball.center)
+    along = directions @ normal
+    t = (plane.offset - origin @ normal) / torch.where(along.abs() > 1e-9, along, 1e-9)
+    hit = origin + t[..., None] * directions
+    return (t > 0) & ((hit - centre).norm(dim=-1) <= ball.radius)
