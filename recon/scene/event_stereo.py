@@ -51,10 +51,11 @@ class StereoConfig:
     witnesses: int = 2
     """... at least this many of them, none sharing an event with its own view."""
     aperture: float = 0.0
-    """A pixel is kept only where its edge crosses the direction the camera's translation
-    moves it in: |cos| of the angle between the edge's normal and that direction at least
-    this (0: every edge). An edge along that direction moves along itself (the aperture
-    problem): its rays meet anywhere, often just before the cameras."""
+    """A pixel is kept only where the camera's translations over the stretch move it across
+    its edge: the root of the share of the image motion's second moment along the edge's
+    normal at least this (|cos| of the normal and the motion where the stretch moves one way;
+    0: every edge). An edge along the motion moves along itself (the aperture problem): its
+    rays meet anywhere, often just before the cameras."""
 
     def __post_init__(self) -> None:
         if self.references < 2 or self.planes < 8 or self.max_events < 1:
@@ -156,9 +157,8 @@ def _reference_points(
     )
     focus = _focus(density)
     chosen = _chosen(focus, len(depths), config.contrast)
-    if config.aperture > 0:  # the stretch's translation, in the reference camera
-        shift = poses[-1, :3, 3] - poses[0, :3, 3]
-        chosen &= _across_the_motion(focus[2], shift, optics.K, config.aperture)
+    if config.aperture > 0:  # the stretch's positions, in the reference camera
+        chosen &= _across_the_motion(focus[2], poses[:, :3, 3], optics.K, config.aperture)
     return _peaks(focus, depths, T_ref, optics.K, chosen)
 
 
@@ -211,11 +211,13 @@ def _chosen(focus: tuple[np.ndarray, ...], planes: int, contrast: float) -> np.n
 
 
 def _across_the_motion(
-    peak: np.ndarray, shift: np.ndarray, K: np.ndarray, aperture: float
+    peak: np.ndarray, shifts: np.ndarray, K: np.ndarray, aperture: float
 ) -> np.ndarray:
-    """The pixels whose edge (a ridge of ``peak``; its normal the structure tensor's first
-    eigenvector) crosses the direction in which the camera's translation ``shift`` (the
-    reference camera's frame) moves a point there: |cos| of their angle >= ``aperture``."""
+    """The pixels whose edge (a ridge of ``peak``; its normal n the structure tensor's first
+    eigenvector) the stretch's translations ``shifts`` [B, 3] (the reference camera's frame)
+    move a point across: sqrt(n^T M n / trace M) >= ``aperture``, M the sum over the shifts
+    of the image motion's outer product (|cos| of n and the motion where it has one
+    direction; a path that turns within the stretch crosses more edges)."""
     import cv2
 
     gx = cv2.Sobel(peak, cv2.CV_32F, 1, 0)
@@ -224,11 +226,15 @@ def _across_the_motion(
     angle = 0.5 * np.arctan2(2 * jxy, jxx - jyy)
     rows, cols = np.indices(peak.shape)
     x, y = (cols - K[0, 2]) / K[0, 0], (rows - K[1, 2]) / K[1, 1]
-    # a point's image moves with the translation along (t_x - x t_z, t_y - y t_z) / z
-    fx = K[0, 0] * (shift[0] - x * shift[2])
-    fy = K[1, 1] * (shift[1] - y * shift[2])
-    norm = np.maximum(np.hypot(fx, fy), 1e-12)
-    return np.abs(np.cos(angle) * fx + np.sin(angle) * fy) / norm >= aperture
+    # a point's image moves with a translation t along (t_x - x t_z, t_y - y t_z) / z: M's
+    # entries from the shifts' second moments
+    S = shifts.T @ shifts
+    m11 = K[0, 0] ** 2 * (S[0, 0] - 2 * x * S[0, 2] + x * x * S[2, 2])
+    m22 = K[1, 1] ** 2 * (S[1, 1] - 2 * y * S[1, 2] + y * y * S[2, 2])
+    m12 = K[0, 0] * K[1, 1] * (S[0, 1] - x * S[1, 2] - y * S[0, 2] + x * y * S[2, 2])
+    c, s = np.cos(angle), np.sin(angle)
+    across = c * c * m11 + 2 * c * s * m12 + s * s * m22
+    return np.sqrt(np.maximum(across, 0) / np.maximum(m11 + m22, 1e-24)) >= aperture
 
 
 def _peaks(

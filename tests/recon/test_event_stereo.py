@@ -126,7 +126,8 @@ def test_its_settings_are_checked():
 def test_an_edge_along_the_cameras_motion_is_left_out():
     """The aperture problem: with the camera moving sideways (along x), a horizontal edge moves
     along itself and says nothing of its depth; a vertical edge crosses the motion. A slanted
-    edge is kept or not by the angle the setting names."""
+    edge is kept or not by the angle the setting names. A path that turns within the stretch
+    (sideways, then up) crosses both."""
     from evcap.recon.scene.event_stereo import _across_the_motion
 
     peak = np.zeros((H, W), np.float32)
@@ -134,10 +135,14 @@ def test_an_edge_along_the_cameras_motion_is_left_out():
     peak[10:60, 70] = 1.0  # vertical
     for i in range(30):  # 30 degrees off the horizontal
         peak[50 - round(i * np.tan(np.radians(30))), 10 + i] = 1.0
-    kept = _across_the_motion(peak, np.array([0.1, 0.0, 0.0]), K, 0.2)
+    sideways = np.linspace(-0.1, 0.1, 21)[:, None] * [1.0, 0, 0]
+    kept = _across_the_motion(peak, sideways, K, 0.2)
     assert not kept[20, 15:35].any()
     assert kept[15:55, 70].all()
-    assert kept[45, 20] and not _across_the_motion(peak, np.array([0.1, 0, 0]), K, 0.6)[45, 20]
+    assert kept[45, 20] and not _across_the_motion(peak, sideways, K, 0.6)[45, 20]
     # the camera moving up instead: the horizontal edge is the one kept
-    upwards = _across_the_motion(peak, np.array([0.0, 0.1, 0.0]), K, 0.2)
+    upwards = _across_the_motion(peak, sideways[:, [1, 0, 2]], K, 0.2)
     assert upwards[20, 15:35].all() and not upwards[15:55, 70].any()
+    turning = np.concatenate([sideways[:11], sideways[10:, [1, 0, 2]]])
+    both = _across_the_motion(peak, turning, K, 0.2)
+    assert both[20, 15:35].all() and both[15:55, 70].all()
