@@ -68,8 +68,8 @@ def support_plane(
         return None
     rng = np.random.default_rng(0)  # the session's plane, whatever the run's seed
     within = config.tolerance * radius
-    best, count = None, int(np.ceil(config.holds * len(points))) - 1
-    needed = count
+    needed = int(np.ceil(config.holds * len(points)))
+    best, count = None, needed - 1
     for _ in range(config.tries):
         plane = _through(points[rng.choice(len(points), 3, replace=False)], cameras)
         if plane is None:
@@ -86,7 +86,7 @@ def support_plane(
     refit = np.linalg.svd(points[on] - centre)[2][2]
     refit = refit if refit @ normal > 0 else -refit
     refined = (refit, float(refit @ centre))
-    if _accept(refined, points, cameras, within, config.below) > needed and _wide(
+    if _accept(refined, points, cameras, within, config.below) >= needed and _wide(
         refined, points, within
     ):
         normal, offset = refit, float(refit @ centre)
