@@ -6,7 +6,17 @@ import numpy as np
 import pytest
 
 from evcap.errors import InputError, PosesError
-from evcap.poses.sfm import MAX_KEYFRAMES, OVERLAP, colmap_camera, loop_pairs, run_sfm
+from evcap.poses.model_join import Piece
+from evcap.poses.sfm import (
+    GOOD_REPROJECTION_PX,
+    MAX_KEYFRAMES,
+    OVERLAP,
+    _better,
+    colmap_camera,
+    loop_pairs,
+    reprojection_px,
+    run_sfm,
+)
 from evcap.sim.render import Renderer
 from evcap.sim.scene import load_scene
 from evcap.sim.trajectory import Trajectory
@@ -242,6 +252,35 @@ def test_loop_pairs_join_keyframes_beyond_the_overlap():
     keys = {i for pair in long for i in pair}
     assert len(keys) <= MAX_KEYFRAMES and max(keys) >= 4800
     assert len(long) <= MAX_KEYFRAMES * (MAX_KEYFRAMES - 1) // 2
+
+
+def seen(frames: int, error_px: float, rng: np.random.Generator) -> Piece:
+    """Cameras on a line looking along z at points 3 to 5 ahead, every point seen by every
+    frame ``error_px`` off (a random direction) from where it projects."""
+    T = np.tile(np.eye(4), (frames, 1, 1))
+    T[:, 0, 3] = np.linspace(-0.5, 0.5, frames)
+    xyz = rng.uniform([-1, -1, 3], [1, 1, 5], (50, 3))
+    rows = [(f, p) for f in range(frames) for p in range(len(xyz))]
+    f, p = np.array(rows).T
+    Y = xyz[p] - T[f, :3, 3]
+    xy = Y[:, :2] / Y[:, 2:] * 200 + 160
+    turn = rng.uniform(0, 2 * np.pi, len(f))
+    xy += error_px * np.stack([np.cos(turn), np.sin(turn)], 1)
+    return Piece(np.arange(frames), T, xyz, f, p, p, xy)
+
+
+def test_a_model_whose_points_fit_beats_a_bent_one_with_more_frames():
+    rng = np.random.default_rng(0)
+    K, dist = np.array([[200.0, 0, 160], [0, 200.0, 160], [0, 0, 1]]), np.zeros(0)
+    fits, bent, more = seen(26, 0.8, rng), seen(39, 2.85, rng), seen(45, 0.8, rng)
+    assert reprojection_px(fits, K, dist) == pytest.approx(0.8)
+    assert reprojection_px(bent, K, dist) > GOOD_REPROJECTION_PX
+    assert _better(fits, bent, K, dist) and not _better(bent, fits, K, dist)
+    assert _better(more, fits, K, dist) and not _better(fits, more, K, dist)
+    assert _better(bent, None, K, dist)
+    # both bent, or both fitting: more frames, then the closer fit
+    assert _better(seen(40, 3.0, rng), bent, K, dist)
+    assert _better(seen(45, 0.5, rng), more, K, dist)
 
 
 @pytest.mark.parametrize(
