@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Create .venv (if missing) and install evcap with its test tools and Ray (evcap batch) into it;
 # and a browser for the browser tests where the machine allows.
-# torch goes first, pinned to the local CPU build; every later install is constrained to it,
-# so that no dependency can pull a CUDA build of torch from PyPI. --no-compile: pip would
+# torch goes first, pinned to the local CPU build; every later install is constrained by the
+# lock, constraints.txt (scripts/lock.sh), which pins torch and every other package, so that no
+# dependency can pull a CUDA build of torch from PyPI and two fresh clones get the same numerics. --no-compile: pip would
 # byte-compile every module it installs (torch's thousands: about a minute of the setup here);
 # Python compiles the ones it imports when it first imports them.
 set -euo pipefail
