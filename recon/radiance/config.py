@@ -40,7 +40,8 @@ class InitConfig:
     on_support: float = 0.0
     """The share started as flat discs on the plane the stereo's points stand on (a floor, a
     table: recon/scene/support_plane.py), taken from the shares above, when one is found; the
-    mean alpha (loss.alpha) is then not asked where the rays meet it."""
+    mean alpha (loss.alpha) then asks the pixels whose rays meet it, inside the outline of its
+    marks, to be opaque."""
     support: SupportConfig = SupportConfig()
     """Finding that plane."""
     size_px: float = 1.0

@@ -196,13 +196,13 @@ def stage_one_terms(config: RadianceConfig, refines_poses: bool) -> list[Term]:
         support, ball = x.data.support, x.data.bound
         if config.init.on_support == 0 or support is None or ball is None:
             return torch.stack([r.alpha.mean() for r in x.renders]).mean()
-        # the backdrop is not seen through the support: its pixels are not asked to be clear
+        # the backdrop is not seen through the support: its pixels are asked to be opaque
         total = x.renders[0].alpha.new_zeros(())
         for f, r in zip(x.frames, x.renders, strict=True):
             viewmat = x.data.viewmats()[int(f)]
             origin = -viewmat[:3, :3].T @ viewmat[:3, 3]
             meets = rays_meet(support, ball, x.grid.directions(viewmat), origin)
-            total = total + (r.alpha * ~meets).mean()
+            total = total + torch.where(meets, 1 - r.alpha, r.alpha).mean()
         return total / len(x.renders)
 
     def binary(x: StepInputs) -> torch.Tensor:

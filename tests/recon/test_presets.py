@@ -98,7 +98,14 @@ STAGE_TWO |= {f"lr_{k}": f"lr.{k}" for k in ("indirect", "light")}
 
 
 # settings a preset changed since, by measurement (each preset's TUNED_ON says on what)
-CHANGED = {"fast": {"init.on_events": 1.0, "loss.alpha.weight": 0.1, "init.stereo.aperture": 0.1}}
+CHANGED = {
+    "fast": {
+        "init.on_events": 1.0,
+        "loss.alpha.weight": 0.1,
+        "init.stereo.aperture": 0.1,
+        "init.on_support": 0.3,
+    }
+}
 
 
 def as_before(config, renamed: dict[str, str], changed: dict | None = None) -> dict:

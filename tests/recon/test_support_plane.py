@@ -1,11 +1,15 @@
 """The plane the scene stands on, from the events' stereo points: found under a floor's marks
 and the objects on it, not in a lone object's painted rings, not where there is no floor."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch
 
 from evcap.errors import InputError
+from evcap.recon.presets import preset
+from evcap.recon.radiance.terms import stage_one_terms
 from evcap.recon.scene.support_plane import (
     Plane,
     SupportConfig,
@@ -48,6 +52,12 @@ def test_the_floor_under_the_objects_is_found():
     assert plane is not None
     assert np.degrees(np.arccos(plane.normal[2])) < 1  # up, towards the cameras
     assert abs(plane.offset) < 0.02  # half the tolerance
+    # its outline: the marks' hull, from the far edge (x = -1.5) to the ball's foot (x < 0.5)
+    corners = np.array([[-1.49, -1.4, 0], [-1.49, 1.4, 0], [0.05, 0, 0], [-0.5, 0.5, 0]])
+    assert plane.inside(corners).all()
+    beyond = np.array([[-1.6, 0, 0], [0.7, 0, 0], [-0.2, 1.6, 0], [-0.5, -1.7, 0]])
+    assert not plane.inside(beyond).any()
+    assert Plane.from_state(plane.state()) == plane
 
 
 def test_a_lone_object_stands_on_nothing():
@@ -80,6 +90,9 @@ def test_discs_lie_on_the_plane_inside_the_ball_in_view():
         x, y = F * cam[:, 0] / cam[:, 2] + W / 2, F * cam[:, 1] / cam[:, 2] + H / 2
         seen |= (cam[:, 2] > 0) & (x >= 0) & (x < W) & (y >= 0) & (y < H)
     assert seen.all()
+    square = Plane((0.0, 0.0, 1.0), 0.0, ((-1.0, -1.0), (0.0, -1.0), (0.0, 0.0), (-1.0, 0.0)))
+    within = on_plane(square, ball, T, K, W, H, 100, np.random.default_rng(0))
+    assert len(within) == 100 and square.inside(within).all()
     missed = Plane((0.0, 0.0, 1.0), 5.0)  # above the ball
     assert len(on_plane(missed, ball, T, K, W, H, 10, np.random.default_rng(0))) == 0
 
@@ -93,6 +106,44 @@ def test_rays_meet_the_plane_only_inside_the_ball():
     )
     # straight down, to 0.98 from the centre, to 1.2, and away from the plane
     assert rays_meet(plane, ball, directions, origin).tolist() == [[True, True, False, False]]
+    # a support that reaches only to x = 0.5: the ray to 0.98 meets the plane beyond it
+    u, v = plane.axes()
+    square = np.array([[-1, -1, 0], [0.5, -1, 0], [0.5, 1, 0], [-1, 1, 0]], float)
+    uv = np.stack([square @ u, square @ v], 1)
+    around = np.arctan2(*(uv - uv.mean(0)).T[::-1])  # counter-clockwise in the plane's axes
+    edged = Plane(plane.normal, plane.offset, tuple(map(tuple, uv[np.argsort(around)].tolist())))
+    assert rays_meet(edged, ball, directions, origin).tolist() == [[True, False, False, False]]
+
+
+def test_the_mean_alpha_asks_the_support_to_be_opaque_and_the_rest_clear():
+    """init.on_support: the pixels whose rays meet the support inside its outline are asked
+    for alpha 1, the others for alpha 0."""
+    config = preset("tiny", {"stage1.init.on_support": 0.3, "stage1.loss.alpha.weight": 1}).stage1
+    term = next(t for t in stage_one_terms(config, False) if t.name == "alpha")
+    square = ((-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0))  # counter-clockwise
+    viewmat = torch.eye(4)
+    viewmat[2, 3] = -2.0  # a camera at z = 2, its axes the world's
+    # straight down, down to x = 0.9 (on the support), to x = 1.5 (beyond it), upwards
+    rays = torch.nn.functional.normalize(
+        torch.tensor([[[0.0, 0, -2], [0.9, 0, -2], [1.5, 0, -2], [0.0, 0, 1]]]), dim=-1
+    )
+    data = SimpleNamespace(
+        support=Plane((0.0, 0.0, 1.0), 0.0, square),
+        bound=Ball((0.0, 0.0, 0.0), 3.0),
+        viewmats=lambda: viewmat[None],
+    )
+
+    def loss(alpha: list[float]) -> float:
+        x = SimpleNamespace(
+            data=data,
+            grid=SimpleNamespace(directions=lambda v: rays),
+            frames=np.array([0]),
+            renders=[SimpleNamespace(alpha=torch.tensor([alpha], dtype=torch.float32))],
+        )
+        return float(term.value(x))
+
+    assert loss([1, 1, 0, 0]) == 0 and loss([0, 0, 1, 1]) == 1
+    assert loss([0, 0, 0, 0]) == loss([1, 1, 1, 1]) == 0.5
 
 
 def test_its_settings_are_checked():
