@@ -47,7 +47,7 @@ MIN_FRAMES = 3  # fewer registered: no poses worth returning
 # at 1.0 any frame left out is a reason to try again
 RETRY_BELOW = 1.0
 # the laxer mapping is tried from this many seeds (its first image pair and RANSAC's draws)
-# and the best model kept (`_better`): one seed can start from a pair that bends the model
+# and the best model kept (`_rank`): one seed can start from a pair that bends the model
 # (the demo's orbit: 39 of 56 frames at a mean 2.85 px from one seed, 45 at 0.83 px from
 # the next two); a mapping takes a few seconds beside the features and matches it shares
 RELAXED_SEEDS = 3
@@ -247,7 +247,7 @@ def _cores() -> int:
 
 
 def _best_model(pycolmap, images, K, dist, workdir, loop_every, threads, report):
-    """(the best model (`_better`) of the mappings tried on one database: the largest model of
+    """(the best model (`_rank`) of the mappings tried on one database: the largest model of
     each, with those that share a frame with it joined (poses/model_join.py) and the frames it
     left out registered where they can be (poses/resection.py), or None; the database's
     statistics, how many models that mapping made, how many were joined, how many resected)."""
@@ -256,16 +256,15 @@ def _best_model(pycolmap, images, K, dist, workdir, loop_every, threads, report)
         work = Path(workdir) if workdir is not None else Path(tmp)
         names = _database(pycolmap, images, K, dist, work, loop_every, threads, report)
         stats = _match_stats(pycolmap, work / "database.db", n)
-        best = (None, stats, 0, 0, 0)
+        best, rank = (None, stats, 0, 0, 0), None
         tries = [(False, SEED)] + [(True, SEED + k) for k in range(RELAXED_SEEDS)]
         for relaxed, seed in tries:
-            whole = best[0] is not None and len(best[0].frames) >= RETRY_BELOW * n
-            if whole and reprojection_px(best[0], K, dist) <= GOOD_REPROJECTION_PX:
-                break
-            recs = _mapping(pycolmap, work, threads, report, relaxed, seed)
+            if rank is not None and rank[0] and rank[1] >= RETRY_BELOW * n:
+                break  # every frame, and the points fit
+            recs = _mapping(pycolmap, work, n, threads, report, relaxed, seed)
             found = _largest(pycolmap, recs, names, work, K, dist)
-            if found[0] is not None and _better(found[0], best[0], K, dist):
-                best = (found[0], stats, len(recs), *found[1:])
+            if found[0] is not None and (rank is None or _rank(found[0], K, dist) > rank):
+                best, rank = (found[0], stats, len(recs), *found[1:]), _rank(found[0], K, dist)
     return best
 
 
@@ -291,18 +290,11 @@ def _largest(pycolmap, recs, names, work, K, dist):
     return best, joined, resected
 
 
-def _better(piece: Piece, than: Piece | None, K: np.ndarray, dist: np.ndarray) -> bool:
-    """Whether ``piece`` is the better model: one whose points fit their sightings
-    (`GOOD_REPROJECTION_PX`) before one that does not, then the one with more frames, then
-    the one whose points fit better."""
-    if than is None:
-        return True
-
-    def key(p: Piece) -> tuple:
-        error = reprojection_px(p, K, dist)
-        return (error <= GOOD_REPROJECTION_PX, len(p.frames), -error)
-
-    return key(piece) > key(than)
+def _rank(piece: Piece, K: np.ndarray, dist: np.ndarray) -> tuple[bool, int, float]:
+    """What makes a model better, in order: its points fit their sightings
+    (`GOOD_REPROJECTION_PX`), more frames, a closer fit."""
+    error = reprojection_px(piece, K, dist)
+    return (error <= GOOD_REPROJECTION_PX, len(piece.frames), -error)
 
 
 def _database(pycolmap, images, K, dist, work, loop_every, threads, report) -> list[str]:
@@ -372,13 +364,12 @@ def _database(pycolmap, images, K, dist, work, loop_every, threads, report) -> l
     return names
 
 
-def _mapping(pycolmap, work, threads, report, relaxed: bool, seed: int) -> dict:
-    """COLMAP's incremental mapping of the database in ``work`` (its models in work/sparse,
-    an earlier mapping's replaced): the reconstructions, a dict, maybe empty."""
+def _mapping(pycolmap, work, n: int, threads, report, relaxed: bool, seed: int) -> dict:
+    """COLMAP's incremental mapping of the database of ``n`` frames in ``work`` (its models in
+    work/sparse, an earlier mapping's replaced): the reconstructions, a dict, maybe empty."""
     folder, database, sparse = work / "images", work / "database.db", work / "sparse"
     shutil.rmtree(sparse, ignore_errors=True)
     sparse.mkdir()
-    n = len(list(folder.iterdir()))
     report(0, n, "mapping")
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = threads

@@ -12,7 +12,7 @@ backdrop is not seen through a floor).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -130,7 +130,7 @@ def support_plane(
     ):
         normal, offset = refit, float(refit @ centre)
     plane = Plane(tuple(float(c) for c in normal), float(offset))
-    return Plane(plane.normal, plane.offset, _outline(plane, points, within))
+    return replace(plane, outline=_outline(plane, points, within))
 
 
 def _outline(plane: Plane, points: np.ndarray, within: float) -> tuple[tuple[float, float], ...]:

@@ -11,7 +11,7 @@ from evcap.poses.sfm import (
     GOOD_REPROJECTION_PX,
     MAX_KEYFRAMES,
     OVERLAP,
-    _better,
+    _rank,
     colmap_camera,
     loop_pairs,
     reprojection_px,
@@ -275,12 +275,14 @@ def test_a_model_whose_points_fit_beats_a_bent_one_with_more_frames():
     fits, bent, more = seen(26, 0.8, rng), seen(39, 2.85, rng), seen(45, 0.8, rng)
     assert reprojection_px(fits, K, dist) == pytest.approx(0.8)
     assert reprojection_px(bent, K, dist) > GOOD_REPROJECTION_PX
-    assert _better(fits, bent, K, dist) and not _better(bent, fits, K, dist)
-    assert _better(more, fits, K, dist) and not _better(fits, more, K, dist)
-    assert _better(bent, None, K, dist)
+
+    def rank(p: Piece) -> tuple:
+        return _rank(p, K, dist)
+
+    assert rank(fits) > rank(bent) and rank(more) > rank(fits)
     # both bent, or both fitting: more frames, then the closer fit
-    assert _better(seen(40, 3.0, rng), bent, K, dist)
-    assert _better(seen(45, 0.5, rng), more, K, dist)
+    assert rank(seen(40, 3.0, rng)) > rank(bent)
+    assert rank(seen(45, 0.5, rng)) > rank(more)
 
 
 @pytest.mark.parametrize(
