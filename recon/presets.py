@@ -83,8 +83,9 @@ PRESETS: dict[Preset, RadianceConfig] = {
             # meets its rays anywhere, often just before the cameras (TUNED_ON["fast"])
             "init.stereo.aperture": 0.1,
             # a floor or table the stereo's points stand on: a third of the Gaussians start on
-            # it as discs, and its pixels inside its marks' outline are asked to be opaque (a
-            # background at infinity paints an untextured floor as well; TUNED_ON["fast"])
+            # it as discs, and its pixels inside its outline (its marks, on to under the
+            # cameras) are asked to be opaque (a background at infinity paints an untextured
+            # floor as well; TUNED_ON["fast"])
             "init.on_support": 0.3,
         },
     ),
@@ -170,7 +171,11 @@ TUNED_ON: dict[Preset, TunedOn] = {
     "fast": TunedOn(
         ("single_object", "plain_backdrop", "multi_object"),
         (5, 6),
-        "the support's discs and opacity (init.on_support 0.3; 2026-12-07) on multi_object, "
+        "the support's outline on to the cameras' feet (2026-12-07) on multi_object, seed 5, "
+        "stage I after one gain: normals 16.9 deg against 66.4 with its marks' hull alone, "
+        "silhouette IoU 0.92 against 0.39, depth 10 % against 55, the object 19.97 dB against "
+        "22.87 (the floor's colour drifts where the background painted it even). "
+        "The support's discs and opacity (init.on_support 0.3; 2026-12-07) on multi_object, "
         "seeds 5 / 6, stage I after one gain: the object 22.87 / 24.06 dB against 20.50 / "
         "20.55 without (seed 6: the aperture at 0.2), normals 66.4 / 66.5 deg against 72.5 / "
         "73.9, silhouette IoU 0.39 / 0.38 against 0.27 / 0.27, backdrop clear 92.6 / 91.9 % "

@@ -6,8 +6,9 @@ background at infinity paints as well as a surface can, so stage I leaves it to 
 (multi_object: 71 % of the floor's pixels seen through). The marks lie on one plane, with the
 cameras on one side and nearly all the structure above it: that plane, where the stereo finds
 one, starts as flat discs, and the pixels whose rays meet it inside the foreground's ball and
-the outline of its marks are asked to be opaque where the others are asked to be clear (the
-backdrop is not seen through a floor).
+its outline (its marks and, unless something is seen below it there, on to under the cameras)
+are asked to be opaque where the others are asked to be clear (the backdrop is not seen
+through a floor).
 """
 
 from __future__ import annotations
@@ -25,6 +26,9 @@ from evcap.recon.scene.volume import Ball
 # than one tolerance under the true floor, 0.2 % more than three); at 3 a plane 4.4 deg off the
 # floor, through the objects' feet, passes, at 2 one 1.9 deg off (it held the most points)
 BELOW_BY = 2.0
+# the support is not run on under the cameras when more points than this share of those it
+# holds lie below it there (multi_object: none of 170 points below lie there)
+BEYOND_MARKS = 0.02
 
 
 @dataclass(frozen=True)
@@ -130,22 +134,38 @@ def support_plane(
     ):
         normal, offset = refit, float(refit @ centre)
     plane = Plane(tuple(float(c) for c in normal), float(offset))
-    return replace(plane, outline=_outline(plane, points, within))
+    return replace(plane, outline=_outline(plane, points, cameras, within))
 
 
-def _outline(plane: Plane, points: np.ndarray, within: float) -> tuple[tuple[float, float], ...]:
-    """The convex hull of the feet of the points the plane holds, counter-clockwise: the
-    support's marks reach its edges (the far edges against what lies beyond, the contact lines
-    and shadows inside), and a floor is not asked for beyond them."""
+def _outline(
+    plane: Plane, points: np.ndarray, cameras: np.ndarray, within: float
+) -> tuple[tuple[float, float], ...]:
+    """Where the support reaches, counter-clockwise: the convex hull of the feet of the points
+    it holds (its marks: the far edges against what lies beyond, the contact lines and shadows
+    inside) and of the cameras. A support runs on under the cameras: between its marks and the
+    cameras it is one colour and makes no events, and an edge there would have marked it. Not
+    so when stereo points lie below the plane in that added part (a table's near edge, the
+    floor seen beyond it): then the marks' hull alone."""
     import cv2
 
-    held = points[np.abs(points @ np.asarray(plane.normal) - plane.offset) < within]
+    normal = np.asarray(plane.normal)
+    height = points @ normal - plane.offset
     u, v = plane.axes()
-    hull = cv2.convexHull(np.stack([held @ u, held @ v], 1).astype(np.float32))[:, 0]
-    hull = hull.astype(np.float64)
-    if _area(hull) < 0:  # OpenCV's orientation depends on its y axis: made counter-clockwise
-        hull = hull[::-1]
-    return tuple((float(a), float(b)) for a, b in hull)
+
+    def hull(p: np.ndarray) -> np.ndarray:
+        h = cv2.convexHull(np.stack([p @ u, p @ v], 1).astype(np.float32))[:, 0]
+        h = h.astype(np.float64)
+        return h[::-1] if _area(h) < 0 else h  # OpenCV's orientation follows its y axis
+
+    held = points[np.abs(height) < within]
+    marks = hull(held)
+    feet = cameras - (cameras @ normal - plane.offset)[:, None] * normal
+    wider = hull(np.concatenate([held, feet]))
+    below = points[height < -BELOW_BY * within]
+    flat = np.stack([below @ u, below @ v], 1)
+    beyond = _in_polygon(flat, wider) & ~_in_polygon(flat, marks)
+    chosen = marks if beyond.sum() > BEYOND_MARKS * len(held) else wider
+    return tuple((float(a), float(b)) for a, b in chosen)
 
 
 def _area(polygon: np.ndarray) -> float:

@@ -52,12 +52,26 @@ def test_the_floor_under_the_objects_is_found():
     assert plane is not None
     assert np.degrees(np.arccos(plane.normal[2])) < 1  # up, towards the cameras
     assert abs(plane.offset) < 0.02  # half the tolerance
-    # its outline: the marks' hull, from the far edge (x = -1.5) to the ball's foot (x < 0.5)
-    corners = np.array([[-1.49, -1.4, 0], [-1.49, 1.4, 0], [0.05, 0, 0], [-0.5, 0.5, 0]])
+    # its outline: from the far edge (x = -1.5) past the ball's foot on to under the cameras
+    # (x from 2.17 to 2.5): the blank floor between makes no events
+    corners = np.array([[-1.49, -1.4, 0], [-1.49, 1.4, 0], [0.7, 0, 0], [2.4, 0, 0]])
     assert plane.inside(corners).all()
-    beyond = np.array([[-1.6, 0, 0], [0.7, 0, 0], [-0.2, 1.6, 0], [-0.5, -1.7, 0]])
+    beyond = np.array([[-1.6, 0, 0], [2.6, 0, 0], [-0.2, 1.6, 0], [-0.5, -1.7, 0]])
     assert not plane.inside(beyond).any()
     assert Plane.from_state(plane.state()) == plane
+
+
+def test_a_table_does_not_run_on_past_its_near_edge():
+    """A table top ending at x = 0.5, the floor 0.7 m below it seen between its near edge and
+    the cameras: the outline stops at the table's marks."""
+    rng = np.random.default_rng(1)
+    near = np.stack([np.full(300, 0.5), rng.uniform(-1.5, 1.5, 300), np.zeros(300)], 1)
+    floor = np.stack([rng.uniform(0.8, 1.6, 60), rng.uniform(-1, 1, 60), np.full(60, -0.7)], 1)
+    points = np.concatenate([floor_scene(rng), near, floor])
+    plane = support_plane(points, cameras()[:, :3, 3], 2.0, SupportConfig())
+    assert plane is not None and abs(plane.offset) < 0.02
+    assert plane.inside(np.array([[-1.4, 0, 0], [0.45, 0, 0]])).all()
+    assert not plane.inside(np.array([[0.6, 0, 0], [1.5, 0, 0]])).any()
 
 
 def test_a_lone_object_stands_on_nothing():
