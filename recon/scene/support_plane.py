@@ -143,9 +143,10 @@ def _outline(
     """Where the support reaches, counter-clockwise: the convex hull of the feet of the points
     it holds (its marks: the far edges against what lies beyond, the contact lines and shadows
     inside) and of the cameras. A support runs on under the cameras: between its marks and the
-    cameras it is one colour and makes no events, and an edge there would have marked it. Not
-    so when stereo points lie below the plane in that added part (a table's near edge, the
-    floor seen beyond it): then the marks' hull alone."""
+    cameras it is one colour and makes no events, and an edge there in view would have marked
+    it (one out of view, under the cameras, no view sees either). Not so when stereo points
+    lie below the plane in that added part (a table's near edge, the floor seen beyond it):
+    then the marks' hull alone."""
     import cv2
 
     normal = np.asarray(plane.normal)
