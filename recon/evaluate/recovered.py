@@ -1,0 +1,47 @@
+"""Whether a reconstruction recovered the object, as a user judges it against the truth: its
+silhouette, its normals and depth, its pixels against a constant color after one gain, the
+backdrop seen through. ``shortfalls`` names each figure that misses its bar; a disc facing the
+camera, a blob and an empty scene each miss one (tests/recon/test_recovered.py)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Bar:
+    """What a reconstruction's held-out figures must reach (the demo's: issue 72)."""
+
+    silhouette_iou: float = 0.9
+    """The rendered silhouette against the truth's, at least."""
+    normals_deg: float = 15.0
+    """Stage I's normals, mean angle on the object, at most."""
+    depth_rel_err: float = 0.05
+    """The depth's mean error as a share of the distance, at most."""
+    over_constant_db: float = 3.0
+    """The object after one gain per channel over the best constant color, at least (dB)."""
+    background_clear: float = 0.9
+    """The pixels off the object seen through, at least."""
+
+
+def shortfalls(figures: Mapping[str, float | None], bar: Bar = Bar()) -> list[str]:
+    """Each figure of ``figures`` (metrics.json's names) that misses ``bar``, with its value and
+    the bar; a figure not measured counts as missed. [] when the object is recovered."""
+    normals = figures.get("radiance_normal_mae_deg") or figures.get("normal_mae_deg")
+    gain, constant = figures.get("object_psnr_gain"), figures.get("object_psnr_constant")
+    over = None if gain is None or constant is None else gain - constant
+    checks = (
+        ("silhouette IoU", figures.get("silhouette_iou"), bar.silhouette_iou, ">=", ""),
+        ("normals", normals, bar.normals_deg, "<=", " deg"),
+        ("depth error", figures.get("depth_rel_err"), bar.depth_rel_err, "<=", ""),
+        ("object over a constant color", over, bar.over_constant_db, ">=", " dB"),
+        ("backdrop clear", figures.get("background_clear"), bar.background_clear, ">=", ""),
+    )
+    missed = []
+    for name, value, limit, sense, unit in checks:
+        ok = value is not None and (value >= limit if sense == ">=" else value <= limit)
+        if not ok:  # NaN fails both senses
+            shown = "not measured" if value is None else f"{value:.3g}{unit}"
+            missed.append(f"{name} {shown}, the bar {sense} {limit:g}{unit}")
+    return missed
