@@ -104,6 +104,7 @@ CHANGED = {
         "loss.alpha.weight": 0.1,
         "init.stereo.aperture": 0.1,
         "init.on_support": 0.3,
+        "loss.quiet_tv.weight": 0.3,
     }
 }
 
