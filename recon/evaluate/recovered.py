@@ -28,7 +28,8 @@ class Bar:
 def shortfalls(figures: Mapping[str, float | None], bar: Bar = Bar()) -> list[str]:
     """Each figure of ``figures`` (metrics.json's names) that misses ``bar``, with its value and
     the bar; a figure not measured counts as missed. [] when the object is recovered."""
-    normals = figures.get("radiance_normal_mae_deg") or figures.get("normal_mae_deg")
+    normals = figures.get("radiance_normal_mae_deg")  # stage I's; the last stage's without it
+    normals = figures.get("normal_mae_deg") if normals is None else normals
     gain, constant = figures.get("object_psnr_gain"), figures.get("object_psnr_constant")
     over = None if gain is None or constant is None else gain - constant
     checks = (
