@@ -41,7 +41,8 @@ class InitConfig:
     """The share started as flat discs on the plane the stereo's points stand on (a floor, a
     table: recon/scene/support_plane.py), taken from the shares above, when one is found; the
     mean alpha (loss.alpha) then asks the pixels whose rays meet it, inside the outline of its
-    marks, to be opaque."""
+    marks, to be opaque. Not sought where the background is known (background.known): that
+    backdrop is seen wherever the object is not."""
     support: SupportConfig = SupportConfig()
     """Finding that plane."""
     size_px: float = 1.0

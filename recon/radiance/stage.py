@@ -141,7 +141,11 @@ def _training_data(
             found = event_stereo(session.events, stretch, track, optics, volume, config.init.stereo)
             structure = found.points
         bound = foreground_ball(volume, structure)
-        if config.init.on_support > 0 and structure is not None and bound is not None:
+        # a known backdrop (a release composited over white) is seen wherever the object is
+        # not: a support that makes no events of its own is that backdrop, not a floor
+        # (mic: the cable and the stand's feet lie on a plane the release has no floor on)
+        seek = config.init.on_support > 0 and config.background.known is None
+        if seek and structure is not None and bound is not None:
             cameras = poses[:, :3, 3]
             support = support_plane(structure, cameras, bound.radius, config.init.support)
     return TrainingData(

@@ -643,6 +643,21 @@ def test_a_share_starts_as_flat_discs_on_the_support_plane(color_session):
     assert again.support == data.support
 
 
+def test_no_support_is_sought_before_a_known_backdrop(color_session, monkeypatch):
+    """A known backdrop is seen wherever the object is not: no floor is sought before it, where
+    a learnt background gets the plane the stereo's points stand on."""
+    import evcap.recon.radiance.stage as stage
+
+    floor = Plane((0.0, 0.0, 1.0), 0.0)
+    monkeypatch.setattr(stage, "support_plane", lambda *args: floor)
+    settings = {"stage1.init.on_events": 1.0, "stage1.init.on_support": 0.25}
+    learnt = preset("tiny", settings).stage1
+    known = preset("tiny", {**settings, "stage1.background.known": (1.0, 1.0, 1.0)}).stage1
+    with Session.open(color_session) as s:
+        assert load_training_data(s, learnt, "cpu").support == floor
+        assert load_training_data(s, known, "cpu").support is None
+
+
 # every preset runs at a tiny size in the default run: tiny in most tests here, paper above,
 # small (the demo's) in tests/test_demo.py at 150 steps, fast here
 RUN_ELSEWHERE = {"tiny", "paper", "small"}
