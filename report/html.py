@@ -127,7 +127,8 @@ def write_report(out: str | Path, session: str | Path | None = None) -> Path:
     bodies["relit"] = _relit_section(folder)
     bodies["metrics"] = result_note or _metrics_section(result)
     bodies["progress"] = _progress_section(result or ReconstructionResult())
-    write_text_atomic(folder.report, _page(folder.root, bodies, _viewer_link(folder)))
+    top = _viewer_link(folder) + (_glance(result) if result is not None else "")
+    write_text_atomic(folder.report, _page(folder.root, bodies, top))
     return folder.report
 
 
@@ -204,6 +205,46 @@ def _viewer_link(folder: ReconstructionFolder) -> str:
             f"{folder.viewer.name}</a>.</p>"
         )
     return "<p>In 3D: <code>evcap view OUT</code> writes the mesh and a viewer beside it.</p>"
+
+
+def _glance(result: ReconstructionResult) -> str:
+    """The first screen's verdict: the object's figures against the bar a user judges it by
+    (recon/evaluate/recovered.py), the object beside what a constant color scores; nothing
+    without held-out truth."""
+    from evcap.recon.evaluate.recovered import checks
+
+    figures = result.figures.measured()
+    found = [c for c in checks(figures) if c.value is not None]
+    if not found:
+        return ""
+    rows = []
+    for c in found:
+        shown = f"{_number(c.value, 3)}{c.unit}"
+        if c.name == "object over a constant color":
+            gain, constant = figures["object_psnr_gain"], figures["object_psnr_constant"]
+            shown = (
+                f"{_number(gain, 3)} dB after one gain against {_number(constant, 3)} dB for "
+                f"a constant color: {c.value:+.2f} dB"
+                if math.isfinite(c.value)
+                else "n/a"
+            )
+        rows.append(
+            f"<tr><td>{escape(c.name)}</td><td>{escape(shown)}</td>"
+            f"<td>{escape(f'{c.sense} {c.limit:g}{c.unit}')}</td>"
+            f"<td>{'met' if c.met else '<b>missed</b>'}</td></tr>"
+        )
+    missed = len(found) - sum(c.met for c in found)
+    verdict = (
+        "The object is recovered: every figure measured meets its bar."
+        if not missed
+        else f"{missed} of {len(found)} figures miss their bar."
+    )
+    return (
+        f"<p>{escape(verdict)} Held-out views against the truth:</p><table>"
+        "<tr><th>figure</th><th>measured</th><th>bar</th><th></th></tr>"
+        + "".join(rows)
+        + "</table>"
+    )
 
 
 def _page(out: Path, bodies: dict[str, str], viewer: str = "") -> str:

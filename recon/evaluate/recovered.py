@@ -25,24 +25,45 @@ class Bar:
     """The pixels off the object seen through, at least."""
 
 
-def shortfalls(figures: Mapping[str, float | None], bar: Bar = Bar()) -> list[str]:
-    """Each figure of ``figures`` (metrics.json's names) that misses ``bar``, with its value and
-    the bar; a figure not measured counts as missed. [] when the object is recovered."""
+@dataclass(frozen=True)
+class Check:
+    """One figure against its bar."""
+
+    name: str
+    value: float | None
+    """None: not measured."""
+    limit: float
+    sense: str
+    """">=" or "<=": which side of ``limit`` passes."""
+    unit: str
+
+    @property
+    def met(self) -> bool:
+        v = self.value
+        return v is not None and (v >= self.limit if self.sense == ">=" else v <= self.limit)
+
+    def __str__(self) -> str:
+        shown = "not measured" if self.value is None else f"{self.value:.3g}{self.unit}"
+        return f"{self.name} {shown}, the bar {self.sense} {self.limit:g}{self.unit}"
+
+
+def checks(figures: Mapping[str, float | None], bar: Bar = Bar()) -> list[Check]:
+    """Each of ``bar``'s figures as measured in ``figures`` (metrics.json's names), in the
+    order a user reads them."""
     normals = figures.get("radiance_normal_mae_deg")  # stage I's; the last stage's without it
     normals = figures.get("normal_mae_deg") if normals is None else normals
     gain, constant = figures.get("object_psnr_gain"), figures.get("object_psnr_constant")
     over = None if gain is None or constant is None else gain - constant
-    checks = (
-        ("silhouette IoU", figures.get("silhouette_iou"), bar.silhouette_iou, ">=", ""),
-        ("normals", normals, bar.normals_deg, "<=", " deg"),
-        ("depth error", figures.get("depth_rel_err"), bar.depth_rel_err, "<=", ""),
-        ("object over a constant color", over, bar.over_constant_db, ">=", " dB"),
-        ("backdrop clear", figures.get("background_clear"), bar.background_clear, ">=", ""),
-    )
-    missed = []
-    for name, value, limit, sense, unit in checks:
-        ok = value is not None and (value >= limit if sense == ">=" else value <= limit)
-        if not ok:  # NaN fails both senses
-            shown = "not measured" if value is None else f"{value:.3g}{unit}"
-            missed.append(f"{name} {shown}, the bar {sense} {limit:g}{unit}")
-    return missed
+    return [
+        Check("silhouette IoU", figures.get("silhouette_iou"), bar.silhouette_iou, ">=", ""),
+        Check("normals", normals, bar.normals_deg, "<=", " deg"),
+        Check("depth error", figures.get("depth_rel_err"), bar.depth_rel_err, "<=", ""),
+        Check("object over a constant color", over, bar.over_constant_db, ">=", " dB"),
+        Check("backdrop clear", figures.get("background_clear"), bar.background_clear, ">=", ""),
+    ]
+
+
+def shortfalls(figures: Mapping[str, float | None], bar: Bar = Bar()) -> list[str]:
+    """Each figure of ``figures`` that misses ``bar``, with its value and the bar; a figure not
+    measured counts as missed (NaN fails both senses). [] when the object is recovered."""
+    return [str(c) for c in checks(figures, bar) if not c.met]

@@ -214,6 +214,35 @@ def test_shows_what_it_found(page):
     assert "nan" not in re.sub(r'src="[^"]*"', "", text).lower()
 
 
+def test_the_first_screen_judges_the_object_against_the_bar(page):
+    """Above the sections: the object's figures against the bar (recon/evaluate/recovered.py),
+    the object beside what a constant color scores; a figure not measured is left out."""
+    _, text = page
+    top = text[: text.index('<section id="maps">')]
+    assert "1 of 1 figures miss their bar." in top
+    assert "19.2 dB after one gain against 17 dB for a constant color: +2.25 dB" in top
+    assert "<td>&gt;= 3 dB</td><td><b>missed</b></td>" in top
+    assert "silhouette IoU" not in top
+
+
+def test_the_first_screen_says_when_the_object_is_recovered():
+    from evcap.records import Figures, ReconstructionResult
+    from evcap.report.html import _glance
+
+    figures = Figures(
+        silhouette_iou=0.93,
+        radiance_normal_mae_deg=4.6,
+        depth_rel_err=0.006,
+        object_psnr_gain=27.2,
+        object_psnr_constant=17.15,
+        background_clear=0.987,
+    )
+    text = _glance(ReconstructionResult(figures=figures))
+    assert "The object is recovered: every figure measured meets its bar." in text
+    assert "missed" not in text and text.count("<td>met</td>") == 5
+    assert _glance(ReconstructionResult()) == ""  # no truth, no verdict
+
+
 def test_nan_and_missing_metrics_show_na(page):
     _, text = page
     assert re.search(r"<td>render PSNR</td><td[^>]*>n/a</td>", text)
