@@ -8,9 +8,14 @@ Poses are camera-to-world [..., 4, 4] transforms.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from evcap.errors import InputError
+
+if TYPE_CHECKING:
+    from evcap.records import Poses
 
 DEGENERATE = 1e-9  # second singular value of the cross-covariance, relative to the first
 CHUNK = 1024  # camera centres per block when finding the largest distance between them
@@ -108,6 +113,18 @@ def pose_errors(T_est: np.ndarray, T_true: np.ndarray, by: str = "centres") -> d
         "t": t,
         "aligned_by": aligned_by,
     }
+
+
+def errors_against_truth(estimate: Poses, truth: Poses) -> dict:
+    """`pose_errors` (by the poses) of ``estimate`` at the truth's own times within its span,
+    the estimate interpolated there, never the truth (a truth of a few views is exact only at
+    them); ``compared``: how many true poses, ``seconds`` [N] their times. The one comparison
+    the demo prints and the report shows."""
+    inside = (truth.t >= estimate.start) & (truth.t <= estimate.end)
+    errors = pose_errors(estimate.at(truth.t[inside]), truth.T_world_cam[inside], by="poses")
+    errors["compared"] = int(inside.sum())
+    errors["seconds"] = truth.t[inside] / 1e6
+    return errors
 
 
 def _points(p: np.ndarray, what: str) -> np.ndarray:

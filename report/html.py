@@ -389,7 +389,7 @@ def _calibration_maps(cal: Calibration) -> str:
 
 
 def _trajectory_section(s: Session) -> str:
-    from evcap.trajectory_alignment import apply_similarity, pose_errors
+    from evcap.trajectory_alignment import apply_similarity, errors_against_truth
 
     if not Poses.present(s):
         return _missing("The session has no /poses group (run `evcap poses` on it).")
@@ -407,10 +407,9 @@ def _trajectory_section(s: Session) -> str:
     if truth is not None and source == "ground truth":
         parts.append("<p>The poses are the simulator's truth: nothing to compare.</p>")
     elif truth is not None:
-        t_true, T_true = truth.t, truth.T_world_cam
+        T_true = truth.T_world_cam
         try:
-            inside = (t_true >= poses.start) & (t_true <= poses.end)
-            errors = pose_errors(poses.at(t_true[inside]), T_true[inside], by="poses")
+            errors = errors_against_truth(poses, truth)
         except InputError as e:
             parts.append(_missing(f"The poses cannot be compared with the truth: {e}"))
         else:
@@ -424,7 +423,7 @@ def _trajectory_section(s: Session) -> str:
             rows += [
                 (
                     "compared at",
-                    f"{int(inside.sum())} true poses, aligned by {errors['aligned_by']}",
+                    f"{errors['compared']} true poses, aligned by {errors['aligned_by']}",
                 ),
                 (
                     "rotation error",
@@ -438,7 +437,7 @@ def _trajectory_section(s: Session) -> str:
                     f"({_number(errors['extent'], 3)} scene units)",
                 ),
             ]
-            seconds = t_true[inside] / 1e6
+            seconds = errors["seconds"]
             parts.append(
                 '<div class="plots">'
                 + line_plot(

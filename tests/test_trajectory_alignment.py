@@ -168,3 +168,21 @@ def test_pose_errors_refuse_bad_input():
     bad[1, 0, 3] = np.inf
     with pytest.raises(InputError, match="finite"):
         pose_errors(bad, T)
+
+
+def test_against_the_truth_at_its_own_poses_where_it_is_exact():
+    """An exact estimate on a dense track scores 0 at the truth's few views, where comparing at
+    the estimate's times would count the truth's own interpolation between them as error."""
+    from evcap.records import Poses
+    from evcap.trajectory_alignment import errors_against_truth
+
+    dense = orbit_poses(201)
+    t = np.arange(201, dtype=np.int64) * 5000
+    truth = Poses(t[::25], dense[::25], source="ground truth")  # 9 views
+    estimate = Poses(t[10:190], apply_similarity(dense[10:190], 0.2, np.eye(3), np.ones(3)))
+    e = errors_against_truth(estimate, truth)
+    assert e["compared"] == 7  # the truth's views inside the estimate's span
+    assert np.allclose(e["seconds"], t[25:176:25] / 1e6)
+    assert e["rotation_median_deg"] < 1e-6 and e["translation_median_pct"] < 1e-6
+    at_estimate = pose_errors(estimate.T_world_cam, truth.at(estimate.t), by="poses")
+    assert at_estimate["translation_median_pct"] > 0.1
