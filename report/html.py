@@ -755,6 +755,14 @@ def _progress_section(result: ReconstructionResult) -> str:
             if any(key in h for h in history)
         ]
         if series:
+            from evcap.recon.reconstruct import HISTORY_VIEWS
+
+            notes.append(
+                f"<p>Along the way stage I is scored on its first {HISTORY_VIEWS} held-out views "
+                "only, with the poses as they came in; the metrics above are over every "
+                "held-out view, with the poses as refined (where they were): the curve's last "
+                "point and the table need not agree.</p>"
+            )
             plots.append(
                 line_plot(
                     series,

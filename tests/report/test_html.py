@@ -211,6 +211,7 @@ def test_shows_what_it_found(page):
     assert "the new light (--relight)" in text
     assert "stage I: training loss" in text and "stage II: training loss" in text
     assert "stage I: PSNR on held-out views" in text
+    assert "scored on its first 2 held-out views only" in text  # not the table's definition
     assert "nan" not in re.sub(r'src="[^"]*"', "", text).lower()
 
 
