@@ -457,7 +457,7 @@ def _stage_radiance(
     def evaluate(field: RadianceField) -> dict:
         views = render_views(field, poses[:HISTORY_VIEWS], data.optics, device)
         seen = truth[:HISTORY_VIEWS]
-        out = image_metrics(views["radiance"], seen.radiance, "render")
+        out = {"views": len(seen), **image_metrics(views["radiance"], seen.radiance, "render")}
         mask = seen.object_mask()
         if mask is not None:
             out.update(object_metrics(views["radiance"], seen.radiance, mask))

@@ -209,9 +209,9 @@ def _viewer_link(folder: ReconstructionFolder) -> str:
 
 def _glance(result: ReconstructionResult) -> str:
     """The first screen's verdict: the object's figures against the bar a user judges it by
-    (recon/evaluate/recovered.py), the object beside what a constant color scores; nothing
+    (evcap/recovered.py), the object beside what a constant color scores; nothing
     without held-out truth."""
-    from evcap.recon.evaluate.recovered import checks
+    from evcap.recovered import checks
 
     figures = result.figures.measured()
     found = [c for c in checks(figures) if c.value is not None]
@@ -755,10 +755,10 @@ def _progress_section(result: ReconstructionResult) -> str:
             if any(key in h for h in history)
         ]
         if series:
-            from evcap.recon.reconstruct import HISTORY_VIEWS
-
+            views = history[-1].get("views")
+            some = f"its first {views}" if isinstance(views, int) else "some of its"
             notes.append(
-                f"<p>Along the way stage I is scored on its first {HISTORY_VIEWS} held-out views "
+                f"<p>Along the way stage I is scored on {some} held-out views "
                 "only, with the poses as they came in; the metrics above are over every "
                 "held-out view, with the poses as refined (where they were): the curve's last "
                 "point and the table need not agree.</p>"

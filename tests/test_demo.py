@@ -76,7 +76,8 @@ def test_demo_runs_resumes_and_writes_the_report(tmp_path):
     assert metrics["effect_variation"].keys() == {"neither", "visibility+indirect"}
     page = report.read_text()
     assert "http://" not in page and "https://" not in page
-    assert "after one gain per color channel" in readme_demo().paragraph(readme_demo().facts(out))
+    paragraph = readme_demo().paragraph(readme_demo().facts(out))
+    assert "after one gain per color channel" in " ".join(paragraph.split())  # across its lines
 
     lines.clear()
     demo.run_demo(out, short, say=lines.append)

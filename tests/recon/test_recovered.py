@@ -1,13 +1,13 @@
-"""The bar a reconstruction must reach (recon/evaluate/recovered.py), with the figures the
+"""The bar a reconstruction must reach (evcap/recovered.py), with the figures the
 reconstruction prints (recon/evaluate/views.metrics): the truth itself clears it; a disc facing
 the camera, a blob and an empty scene do not, each for what a user would see wrong."""
 
 import numpy as np
 import pytest
 
-from evcap.recon.evaluate.recovered import Bar, shortfalls
 from evcap.recon.evaluate.views import metrics
 from evcap.records.truth import TruthViews
+from evcap.recovered import Bar, shortfalls
 
 SIZE, FOCAL, DISTANCE, RADIUS = 96, 90.0, 2.0, 0.45
 BACKDROP = np.array([0.30, 0.28, 0.25], np.float32)

@@ -137,7 +137,7 @@ def make_reconstruction(out: Path, session: Path) -> Path:
         "history": [
             {"step": 10, "seconds": 1.0, "render_psnr_gain": 15.0, "render_psnr": 12.0},
             {"step": 20, "seconds": 2.0, "render_psnr_gain": float("nan"), "render_psnr": 13.0},
-            {"step": 30, "seconds": 3.0, "render_psnr_gain": 19.0, "render_psnr": 14.0},
+            {"step": 30, "seconds": 3.0, "render_psnr_gain": 19.0, "render_psnr": 14.0, "views": 2},
         ],
     }
     log = [StepLog(s, 1 / s, 0.8 / s, 0.01, 0.1, 500, s * 0.1) for s in range(10, 60, 10)]
@@ -216,7 +216,7 @@ def test_shows_what_it_found(page):
 
 
 def test_the_first_screen_judges_the_object_against_the_bar(page):
-    """Above the sections: the object's figures against the bar (recon/evaluate/recovered.py),
+    """Above the sections: the object's figures against the bar (evcap/recovered.py),
     the object beside what a constant color scores; a figure not measured is left out."""
     _, text = page
     top = text[: text.index('<section id="maps">')]
