@@ -50,8 +50,10 @@ def test_the_floor_under_the_objects_is_found():
     rng = np.random.default_rng(1)
     plane = support_plane(floor_scene(rng), cameras()[:, :3, 3], 2.0, SupportConfig())
     assert plane is not None
-    assert np.degrees(np.arccos(plane.normal[2])) < 1  # up, towards the cameras
-    assert abs(plane.offset) < 0.02  # half the tolerance
+    # up, towards the cameras, on the marks: the ball's bottom, the only structure on the
+    # cameras' side, does not tilt it (least squares over all it held: 0.69 deg, 1.1 cm)
+    assert np.degrees(np.arccos(plane.normal[2])) < 0.2
+    assert abs(plane.offset) < 0.005
     # its outline: from the far edge (x = -1.5) past the ball's foot on to under the cameras
     # (x from 2.17 to 2.5): the blank floor between makes no events
     corners = np.array([[-1.49, -1.4, 0], [-1.49, 1.4, 0], [0.7, 0, 0], [2.4, 0, 0]])
@@ -165,3 +167,5 @@ def test_its_settings_are_checked():
         SupportConfig(holds=0)
     with pytest.raises(InputError, match="init.support"):
         SupportConfig(tries=0)
+    with pytest.raises(InputError, match="init.support"):
+        SupportConfig(below_weight=-1)
