@@ -205,9 +205,7 @@ def _refine(
 
     normal, offset = plane
     height = points @ normal - offset
-    u = np.cross(normal, [1.0, 0, 0] if abs(normal[0]) < 0.9 else [0, 1.0, 0])
-    u /= np.linalg.norm(u)
-    v = np.cross(normal, u)
+    u, v = Plane(tuple(normal), offset).axes()
     flat = np.stack([points @ u, points @ v], 1)
     body = (height > 2 * within) & (height < BODY_REACH * radius)
     marks = points
