@@ -19,6 +19,7 @@ from evcap.app import demo
 from evcap.errors import InputError, OutputExistsError
 from evcap.pipeline import PipelineInterrupted
 from evcap.recon.options import ReconstructOptions
+from evcap.recovered import Bar, shortfalls
 
 ROOT = Path(__file__).resolve().parents[1]
 SHORT = 150  # stage I's steps in the test of the demo's mechanics (the demo's own: 550)
@@ -86,16 +87,12 @@ def test_demo_runs_resumes_and_writes_the_report(tmp_path):
 
 @pytest.mark.slow
 def test_the_demo_recovers_the_sphere(tmp_path):
-    """The demo as a newcomer runs it (about 4 minutes here)."""
+    """The demo as a newcomer runs it (about 4 minutes here), judged by issue 72's bar: a disc
+    facing the camera, a blob and an empty scene each miss it (tests/recon/test_recovered.py)."""
     demo.run_demo(tmp_path / "demo", say=lambda line: None)
     metrics = json.loads((tmp_path / "demo" / "reconstruction" / "metrics.json").read_text())
-    # the sphere is there, on estimated poses (measured: +2.9 dB, 18.6 deg, 3.8 %, 75 % of the
-    # object's depth within 5 %, 91 % of the backdrop seen through; before the Gaussians
-    # started on the points: +2.3 dB, 25 deg, 8 %, fog on half the backdrop)
-    assert metrics["object_psnr_gain"] > metrics["object_psnr_constant"] + 2.5
-    assert metrics["radiance_normal_mae_deg"] < 22 and metrics["depth_rel_err"] < 0.05
-    assert metrics["depth_within_5pct"] > 0.7
-    assert metrics["background_clear"] > 0.9  # the issue's picture: the disc, no fog
+    # measured on the 60-degree arc (README): IoU 0.75, +0.7 dB, 16.9 deg: missed
+    assert shortfalls(metrics, Bar()) == []
     # relit under the truth's second light (measured: 19.8 dB against a constant's 17.2 and
     # 18.7 for the views never relit)
     assert metrics["relit_object_psnr_gain"] > metrics["relit_object_psnr_constant"] + 1.5
