@@ -174,3 +174,32 @@ def depth_curvature_loss(depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tens
         total = total + (depth.diff(n=2, dim=dim).abs() / middle * m).sum()
         count = count + m.sum()
     return total / count.clamp(min=1)
+
+
+def structure_block_loss(
+    depth: torch.Tensor,
+    alpha: torch.Tensor,
+    points: torch.Tensor,
+    viewmat: torch.Tensor,
+    K: torch.Tensor,
+    tolerance: float,
+) -> torch.Tensor:
+    """Each stereo point blocks its ray: at the render's pixel [H, W] nearest each point [N, 3]
+    (world) in front of the camera ``viewmat`` [4, 4], mean of (1 - alpha) + max(0, depth /
+    z - 1 - ``tolerance``), z the point's depth. One-sided: a surface in front of the point
+    (an occluder) passes. What the events saw a surface at is not seen through: a pale object
+    on a pale floor makes few events inside its outline, and without this its Gaussians fade
+    while the floor behind, held opaque, shows through it."""
+    H, W = depth.shape
+    cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = cam[:, 2]
+    uv = cam @ K.T
+    u = torch.round(uv[:, 0] / z.clamp(min=1e-6)).long()
+    v = torch.round(uv[:, 1] / z.clamp(min=1e-6)).long()
+    seen = (z > 1e-3) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    if not bool(seen.any()):
+        return depth.new_zeros(())
+    index = v[seen] * W + u[seen]
+    a, d = alpha.reshape(-1)[index], depth.reshape(-1)[index]
+    behind = (d / z[seen] - 1 - tolerance).clamp(min=0)
+    return ((1 - a) + behind).mean()

@@ -19,6 +19,7 @@ from evcap.recon.radiance.losses import (
     anchor_loss,
     depth_curvature_loss,
     quiet_variation_loss,
+    structure_block_loss,
     surface_terms,
 )
 from evcap.recon.raster.rasterize import Render
@@ -65,6 +66,14 @@ class SmoothConfig(TermConfig):
 
 
 @dataclass(frozen=True)
+class BlockConfig(TermConfig):
+    """The stereo's points block their rays (losses.structure_block_loss)."""
+
+    tolerance: float = 0.03
+    """How far behind a point, as a share of its depth, the rendered depth may lie."""
+
+
+@dataclass(frozen=True)
 class LossConfig:
     """Stage I's terms beside the event loss, each with its weight and start."""
 
@@ -90,6 +99,8 @@ class LossConfig:
     opacity: TermConfig = TermConfig(0.01)
     """The mean opacity, as gsplat's opacity_reg: where the events say nothing, the fewest
     Gaussians that explain them."""
+    block: BlockConfig = BlockConfig()
+    """Where the events' stereo found a surface (init.on_events), its rays are blocked."""
     binary: TermConfig = TermConfig(0.0, 0.5)
     """Opacities pushed to 0 or 1: the mean of o (1 - o)."""
     flatten: TermConfig = TermConfig()
@@ -205,6 +216,19 @@ def stage_one_terms(config: RadianceConfig, refines_poses: bool) -> list[Term]:
             total = total + torch.where(meets, 1 - r.alpha, r.alpha).mean()
         return total / len(x.renders)
 
+    def block(x: StepInputs) -> torch.Tensor:
+        if x.data.structure is None:
+            return x.renders[0].alpha.new_zeros(())
+        points = torch.as_tensor(x.data.structure, dtype=torch.float32, device=x.grid.K.device)
+        viewmats = x.data.viewmats()
+        total = sum(
+            structure_block_loss(
+                r.depth, r.alpha, points, viewmats[int(f)], x.grid.K, loss.block.tolerance
+            )
+            for f, r in zip(x.frames, x.renders, strict=True)
+        )
+        return total / len(x.renders)
+
     def binary(x: StepInputs) -> torch.Tensor:
         o = x.field.gaussians.opacities
         return (o * (1 - o)).mean()
@@ -233,6 +257,7 @@ def stage_one_terms(config: RadianceConfig, refines_poses: bool) -> list[Term]:
     for name, term, value in (
         ("curvature", loss.curvature, curvature),
         ("alpha", loss.alpha, alpha),
+        ("block", loss.block, block),
         ("opacity", loss.opacity, lambda x: x.field.gaussians.opacities.mean()),
         ("binary", loss.binary, binary),
         ("flatten", loss.flatten, flatten),

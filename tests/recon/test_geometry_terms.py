@@ -13,6 +13,7 @@ from evcap.recon.radiance.losses import (
     depth_spread_loss,
     normal_smoothness_loss,
     quiet_variation_loss,
+    structure_block_loss,
 )
 from evcap.recon.radiance.stage import RadianceField
 from evcap.recon.raster.rasterize import Camera, rasterize
@@ -124,6 +125,44 @@ def test_variation_counts_where_no_event_fired_only():
     step = flat.clone()
     step[:, 8:] = 1.0
     assert float(quiet_variation_loss(step, (xs == 8) | (xs == 7))) == 0.0
+
+
+def test_a_stereo_point_is_not_seen_through():
+    """A faint layer at the point's depth before an opaque one behind it (a pale sphere on a
+    floor) costs, and more opacity there lowers it; an occluder in front of the point passes."""
+    K = torch.tensor([[10.0, 0, 5.5], [0, 10.0, 4.5], [0, 0, 1]])
+    camera = Camera(torch.eye(4), K, 12, 10)
+    points = torch.tensor([[0.0, 0.0, 2.0], [0.1, -0.1, 2.0]])
+
+    def cost(depths: list[float], opacity: torch.Tensor) -> torch.Tensor:
+        n = len(depths)
+        means = torch.tensor([[0.0, 0.0, d] for d in depths])
+        scales = torch.tensor([[100.0, 100.0, 1e-3]] * n)
+        quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * n)
+        r = rasterize(means, quats, scales, opacity, means[:, 2:3] ** 2, camera)
+        return structure_block_loss(r.depth, r.alpha, points, torch.eye(4), K, 0.03)
+
+    faint = torch.tensor([0.1, 0.99], requires_grad=True)
+    seen_through = cost([2.0, 4.0], faint)
+    seen_through.backward()
+    assert float(seen_through.detach()) > 0.5  # the floor's depth 4 where the point is at 2
+    assert float(faint.grad[0]) < 0  # more opacity at the point: less cost
+    solid = float(cost([2.0, 4.0], torch.tensor([0.99, 0.99])))
+    assert solid < 0.02
+    assert float(cost([1.0, 4.0], torch.tensor([0.99, 0.99]))) < 0.02  # an occluder
+    assert float(cost([2.0], torch.tensor([0.2]))) > 0.7  # nothing behind: the alpha missing
+    # a point behind the camera or off the image is not counted
+    away = torch.tensor([[0.0, 0.0, -2.0], [50.0, 0.0, 2.0]])
+    means, scales = torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([[100.0, 100.0, 1e-3]])
+    r = rasterize(
+        means,
+        torch.tensor([[1.0, 0, 0, 0]]),
+        scales,
+        torch.tensor([0.1]),
+        means[:, 2:] ** 2,
+        camera,
+    )
+    assert float(structure_block_loss(r.depth, r.alpha, away, torch.eye(4), K, 0.03)) == 0.0
 
 
 def test_hidden_gaussians_leave_the_background_alone():
