@@ -183,13 +183,14 @@ def structure_block_loss(
     viewmat: torch.Tensor,
     K: torch.Tensor,
     tolerance: float,
+    opaque: float = 1.0,
 ) -> torch.Tensor:
     """Each stereo point blocks its ray: at the render's pixel [H, W] nearest each point [N, 3]
-    (world) in front of the camera ``viewmat`` [4, 4], mean of (1 - alpha) + max(0, depth /
-    z - 1 - ``tolerance``), z the point's depth. One-sided: a surface in front of the point
-    (an occluder) passes. What the events saw a surface at is not seen through: a pale object
-    on a pale floor makes few events inside its outline, and without this its Gaussians fade
-    while the floor behind, held opaque, shows through it."""
+    (world) in front of the camera ``viewmat`` [4, 4], mean of ``opaque`` * (1 - alpha) +
+    max(0, depth / z - 1 - ``tolerance``), z the point's depth. One-sided: a surface in front
+    of the point (an occluder) passes. What the events saw a surface at is not seen through:
+    a pale object on a pale floor makes few events inside its outline, and without this its
+    Gaussians fade while the floor behind, held opaque, shows through it."""
     H, W = depth.shape
     cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
     z = cam[:, 2]
@@ -202,4 +203,4 @@ def structure_block_loss(
     index = v[seen] * W + u[seen]
     a, d = alpha.reshape(-1)[index], depth.reshape(-1)[index]
     behind = (d / z[seen] - 1 - tolerance).clamp(min=0)
-    return ((1 - a) + behind).mean()
+    return (opaque * (1 - a) + behind).mean()

@@ -71,6 +71,15 @@ class BlockConfig(TermConfig):
 
     tolerance: float = 0.03
     """How far behind a point, as a share of its depth, the rendered depth may lie."""
+    opaque: float = 1.0
+    """The weight of a point's pixel left unblocked (1 - alpha) beside the depth past it: a
+    point outside an outline (the stereo's strays off a smooth object's limb) then asks for
+    fog against the backdrop."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.tolerance < 0 or self.opaque < 0:
+            raise InputError("loss.block needs tolerance >= 0 and opaque >= 0")
 
 
 @dataclass(frozen=True)
@@ -223,7 +232,13 @@ def stage_one_terms(config: RadianceConfig, refines_poses: bool) -> list[Term]:
         viewmats = x.data.viewmats()
         total = sum(
             structure_block_loss(
-                r.depth, r.alpha, points, viewmats[int(f)], x.grid.K, loss.block.tolerance
+                r.depth,
+                r.alpha,
+                points,
+                viewmats[int(f)],
+                x.grid.K,
+                loss.block.tolerance,
+                loss.block.opaque,
             )
             for f, r in zip(x.frames, x.renders, strict=True)
         )

@@ -134,13 +134,13 @@ def test_a_stereo_point_is_not_seen_through():
     camera = Camera(torch.eye(4), K, 12, 10)
     points = torch.tensor([[0.0, 0.0, 2.0], [0.1, -0.1, 2.0]])
 
-    def cost(depths: list[float], opacity: torch.Tensor) -> torch.Tensor:
+    def cost(depths: list[float], opacity: torch.Tensor, opaque: float = 1.0) -> torch.Tensor:
         n = len(depths)
         means = torch.tensor([[0.0, 0.0, d] for d in depths])
         scales = torch.tensor([[100.0, 100.0, 1e-3]] * n)
         quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * n)
         r = rasterize(means, quats, scales, opacity, means[:, 2:3] ** 2, camera)
-        return structure_block_loss(r.depth, r.alpha, points, torch.eye(4), K, 0.03)
+        return structure_block_loss(r.depth, r.alpha, points, torch.eye(4), K, 0.03, opaque)
 
     faint = torch.tensor([0.1, 0.99], requires_grad=True)
     seen_through = cost([2.0, 4.0], faint)
@@ -151,6 +151,8 @@ def test_a_stereo_point_is_not_seen_through():
     assert solid < 0.02
     assert float(cost([1.0, 4.0], torch.tensor([0.99, 0.99]))) < 0.02  # an occluder
     assert float(cost([2.0], torch.tensor([0.2]))) > 0.7  # nothing behind: the alpha missing
+    assert float(cost([2.0], torch.tensor([0.2]), opaque=0.0)) < 1e-6  # ... unless not asked
+    assert float(cost([2.0, 4.0], torch.tensor([0.1, 0.99]), opaque=0.0)) > 0.5
     # a point behind the camera or off the image is not counted
     away = torch.tensor([[0.0, 0.0, -2.0], [50.0, 0.0, 2.0]])
     means, scales = torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([[100.0, 100.0, 1e-3]])

@@ -82,6 +82,7 @@ NEW |= {"init.on_events": 0.0} | {f"init.stereo.{k}": v for k, v in names(Stereo
 NEW |= {"init.on_support": 0.0} | {f"init.support.{k}": v for k, v in names(SupportConfig())}
 # none asked the stereo's points to block their rays
 NEW |= {"loss.block.weight": 0.0, "loss.block.start": 0.0, "loss.block.tolerance": 0.03}
+NEW |= {"loss.block.opaque": 1.0}
 # none pruned by its largest blending weight, nor held in a given box
 NEW |= {"densify.min_weight": 0.0, "densify.bounds": None}
 # 3D Gaussians, not surfels
